@@ -1,0 +1,129 @@
+"""The `moirejax` command line: one subcommand per thing a user does."""
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+
+from ._fileio import DataError
+
+
+def _add_device_arguments(parser: argparse.ArgumentParser, *, design_flags: bool = False) -> None:
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--preset", choices=["dense", "mid", "sparse"], help="one of the paper's designs")
+    group.add_argument("--device", metavar="FILE", help="a device JSON file")
+    if design_flags:
+        g = parser.add_argument_group("design parameters (override the preset)")
+        g.add_argument("--p1", type=float, help="upper (far) grating pitch, mm")
+        g.add_argument("--p2", type=float, help="reference (near) grating pitch, mm")
+        g.add_argument("--alpha1-deg", type=float, help="upper grating angle, degrees")
+        g.add_argument("--alpha2-deg", type=float, help="reference grating angle, degrees")
+        g.add_argument("--a", type=float, help="grating separation, mm")
+        g.add_argument("--Z", type=float, help="camera distance to the reference grating, mm")
+        g.add_argument("--px-per-mm", type=float, help="rectified resolution, px/mm")
+        g.add_argument("--size", type=int, help="rectified image size, pixels (square)")
+        g.add_argument("--E", type=float, help="elastomer Young's modulus, MPa")
+        g.add_argument("--nu", type=float, help="elastomer Poisson ratio")
+        g.add_argument("--thickness", type=float, help="elastomer thickness, mm")
+        g.add_argument("--layout", choices=["lines", "crossed"], help="line gratings or crossed grids")
+
+
+def _device_from_args(args: argparse.Namespace):
+    from ._device import device_from_json, device_to_json, load_device, preset
+
+    if getattr(args, "device", None):
+        device = load_device(args.device)
+    else:
+        device = preset(args.preset or "mid", **({"layout": args.layout} if getattr(args, "layout", None) else {}))
+    changes: dict = {}
+    for flag, field in (("p1", "p1"), ("p2", "p2"), ("a", "a"), ("Z", "Z"), ("px_per_mm", "px_per_mm")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            changes[field] = value
+    for flag, field in (("alpha1_deg", "alpha1"), ("alpha2_deg", "alpha2")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            changes[field] = math.radians(value)
+    if getattr(args, "size", None) is not None:
+        changes["height"] = changes["width"] = args.size
+    elastomer = {k: getattr(args, k) for k in ("E", "nu", "thickness") if getattr(args, k, None) is not None}
+    if not changes and not elastomer and not getattr(args, "layout", None):
+        return device
+    obj = device_to_json(device)
+    obj.update(changes)
+    obj["elastomer"].update(elastomer)
+    if getattr(args, "layout", None) and args.layout != obj["layout"]:
+        obj["layout"] = args.layout
+        n = 1 if args.layout == "lines" else 2
+        obj["optics"]["phase1"] = [0.0] * n
+        obj["optics"]["phase2"] = [0.0] * n
+    return device_from_json(obj, source="command line")
+
+
+# ---------------------------------------------------------------------------------------
+
+
+def _cmd_design(args: argparse.Namespace) -> int:
+    from ._design import design_table, format_design_table, plot_design_maps
+    from ._device import save_device
+
+    device = _device_from_args(args)
+    table = design_table(device)
+    if args.json:
+        print(json.dumps(table, indent=2))
+    else:
+        print(format_design_table(table))
+    if args.write:
+        save_device(args.write, device)
+        print(f"wrote device {args.write}", file=sys.stderr)
+    if args.plot:
+        plot_design_maps(args.plot, device)
+        print(f"wrote design maps {args.plot}", file=sys.stderr)
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from ._demo import run_demo
+
+    return run_demo(out=args.out, smoke=args.smoke)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the `moirejax` command (also used to document the CLI)."""
+    parser = argparse.ArgumentParser(
+        prog="moirejax",
+        description="Design, simulate, calibrate and invert moire visuotactile sensors.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("design", help="geometry and sensitivity table of a design")
+    _add_device_arguments(p, design_flags=True)
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--write", metavar="FILE", help="write the device JSON")
+    p.add_argument("--plot", metavar="FILE.png", help="draw design maps")
+    p.set_defaults(run=_cmd_design)
+
+    p = sub.add_parser("demo", help="the whole product on an embedded default, no hardware needed")
+    p.add_argument("--out", default="moirejax-demo", help="output folder (default: moirejax-demo)")
+    p.add_argument("--smoke", action="store_true", help="tiny sizes, for tests")
+    p.set_defaults(run=_cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `moirejax` command. Returns the process exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.run(args)
+    except (ValueError, DataError, FileNotFoundError) as e:
+        print(f"moirejax {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"moirejax {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

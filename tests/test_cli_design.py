@@ -1,0 +1,47 @@
+import json
+
+import pytest
+
+import moirejax as mj
+from moirejax._cli import main
+
+
+@pytest.mark.parametrize("name, A, d_eff", [("dense", 4.00, 0.25), ("mid", 14.00, 0.10), ("sparse", 24.00, 0.07)])
+def test_design_json_reproduces_paper_table(capsys, name, A, d_eff):
+    assert main(["design", "--preset", name, "--json"]) == 0
+    table = json.loads(capsys.readouterr().out)
+    assert round(table["amplification_A"], 2) == A
+    assert abs(table["delta_eff_first_order"] - d_eff) < 0.01
+    # The output says where first-order and exact parallax differ.
+    assert table["delta_eff_exact"] != pytest.approx(table["delta_eff_first_order"], abs=1e-3)
+    assert "first-order" in table["differences"]
+    assert set(table["dperiod"]) == {"p1", "p2", "delta_alpha", "a", "Z"}
+
+
+def test_design_flags_write_and_plot(tmp_path, capsys):
+    device_file = tmp_path / "d.json"
+    plot = tmp_path / "maps.png"
+    argv = ["design", "--p1", "0.35", "--p2", "0.30", "--a", "3", "--Z", "12", "--px-per-mm", "16", "--size", "512"]
+    argv += ["--E", "1.0", "--nu", "0.49", "--thickness", "3", "--alpha1-deg", "0.5", "--layout", "lines"]
+    assert main([*argv, "--write", str(device_file), "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out
+    assert "amplification A" in out and "dLambda/d" in out
+    device = mj.load_device(device_file)
+    assert device.layout == "lines" and abs(float(device.alpha1) - 0.5 * 3.141592653589793 / 180) < 1e-12
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["--p1", "-0.3", "--p2", "0.3"], "p1"),
+        (["--p1", "0.35", "--p2", "0.3", "--a", "12", "--Z", "12"], "a < Z"),
+        (["--p1", "0.375", "--p2", "0.3", "--a", "3", "--Z", "12"], "infinite"),
+        (["--device", "/nonexistent/device.json"], "no such file"),
+    ],
+)
+def test_design_bad_input_is_one_clear_line(capsys, argv, fragment):
+    assert main(["design", *argv]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
