@@ -83,6 +83,30 @@ def _cmd_design(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from ._simulate import simulate_dataset
+
+    device = _device_from_args(args)
+    out = simulate_dataset(
+        args.out, device, args.protocol, args.n, seed=args.seed, fidelity=args.fidelity, overwrite=args.overwrite
+    )
+    print(f"wrote {args.n} {args.fidelity}-fidelity frames of protocol {args.protocol!r} to {out}")
+    print(f"contact sheet: {out.with_name(out.name + '_contact_sheet.png')}")
+    return 0
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from ._dataset import import_recording
+    from ._device import load_device
+
+    load_device(args.device)  # validate the device before converting thousands of frames
+    report = import_recording(
+        args.frames, args.wrench, args.device, args.out, skip_bad=args.skip_bad, overwrite=args.overwrite
+    )
+    print(report)
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from ._demo import run_demo
 
@@ -103,6 +127,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--write", metavar="FILE", help="write the device JSON")
     p.add_argument("--plot", metavar="FILE.png", help="draw design maps")
     p.set_defaults(run=_cmd_design)
+
+    p = sub.add_parser("simulate", help="render a dataset of a simulated unit under a load protocol")
+    _add_device_arguments(p)
+    p.add_argument("--protocol", choices=["paper", "mixed", "sequence", "none"], default="paper")
+    p.add_argument("--n", type=int, default=500, help="number of frames")
+    p.add_argument("--out", required=True, metavar="DIR", help="dataset folder to write")
+    p.add_argument("--seed", type=int, default=0, help="draws the unit's deviations, the loads and the noise")
+    p.add_argument("--fidelity", choices=["model", "high"], default="high")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset in DIR")
+    p.set_defaults(run=_cmd_simulate)
+
+    p = sub.add_parser("import", help="turn image files plus a force/torque CSV into a dataset")
+    p.add_argument("--frames", required=True, metavar="DIR", help="folder of images")
+    p.add_argument("--wrench", required=True, metavar="CSV", help="columns frame,fx,fy,fz,tx,ty,tz[,t][,contact]")
+    p.add_argument("--device", required=True, metavar="FILE", help="device JSON of the unit")
+    p.add_argument("--out", required=True, metavar="DATASET")
+    p.add_argument("--skip-bad", action="store_true", help="skip missing or unreadable frames (listed)")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(run=_cmd_import)
 
     p = sub.add_parser("demo", help="the whole product on an embedded default, no hardware needed")
     p.add_argument("--out", default="moirejax-demo", help="output folder (default: moirejax-demo)")

@@ -54,6 +54,9 @@ CONTACTS_NAME = "contact.csv"
 
 _OPTIONAL_COLUMNS = ("t", "contact")
 _MAXVAL = {8: 255, 16: 65535}
+# Scalars as simulators hand them over (Python or NumPy).
+_Real = float | int | np.floating | np.integer
+
 # Float frames this far outside [0, 1] are rounding noise from the renderer, not a bug.
 _FLOAT_RANGE_SLACK = 1e-6
 
@@ -109,10 +112,7 @@ def _records(reader: Any, path: Path, header: list[str]) -> Iterator[tuple[int, 
         if not any(field.strip() for field in record):
             continue
         if len(record) != len(header):
-            raise DataError(
-                f"{path} row {reader.line_num}: expected {len(header)} fields, "
-                f"found {len(record)}"
-            )
+            raise DataError(f"{path} row {reader.line_num}: expected {len(header)} fields, found {len(record)}")
         yield reader.line_num, dict(zip(header, record))
 
 
@@ -166,23 +166,17 @@ def _read_wrench_table(path: Path, *, strict: bool) -> _WrenchTable:
                 raise DataError(f"{where}: field 'frame': {problem}")
             name = str(PurePosixPath(name))
             if name in first_row_of:
-                raise DataError(
-                    f"{where}: field 'frame': {name!r} already appears in row {first_row_of[name]}"
-                )
+                raise DataError(f"{where}: field 'frame': {name!r} already appears in row {first_row_of[name]}")
             first_row_of[name] = row
             frames.append(name)
             rows.append(row)
-            wrenches.append(
-                [_parse_number(record[c], where, c, require_finite=strict) for c in WRENCH_COLUMNS]
-            )
+            wrenches.append([_parse_number(record[c], where, c, require_finite=strict) for c in WRENCH_COLUMNS])
             if has_t:
                 times.append(_parse_number(record["t"], where, "t", require_finite=True))
             if has_contact:
                 value = _parse_number(record["contact"], where, "contact", require_finite=True)
                 if value not in (0.0, 1.0):
-                    raise DataError(
-                        f"{where}: field 'contact': {record['contact'].strip()!r} is not 0 or 1"
-                    )
+                    raise DataError(f"{where}: field 'contact': {record['contact'].strip()!r} is not 0 or 1")
                 contacts.append(value == 1.0)
     return _WrenchTable(
         frames=tuple(frames),
@@ -207,14 +201,9 @@ def _read_latents(path: Path, frames: tuple[str, ...]) -> dict[str, np.ndarray]:
             name = record["frame"].strip()
             if i >= len(frames) or str(PurePosixPath(name)) != frames[i]:
                 expected = repr(frames[i]) if i < len(frames) else "no more rows"
-                raise DataError(
-                    f"{where}: field 'frame': {name!r} does not match {WRENCH_NAME} "
-                    f"(expected {expected})"
-                )
+                raise DataError(f"{where}: field 'frame': {name!r} does not match {WRENCH_NAME} (expected {expected})")
             # NaN is allowed: a latent such as the contact centre is undefined without contact.
-            values.append(
-                [_parse_number(record[c], where, c, require_finite=False) for c in columns]
-            )
+            values.append([_parse_number(record[c], where, c, require_finite=False) for c in columns])
     if len(values) != len(frames):
         raise DataError(f"{path}: {len(values)} rows, but {WRENCH_NAME} has {len(frames)}")
     table = np.array(values, dtype=np.float64).reshape(len(frames), len(columns))
@@ -270,9 +259,7 @@ def _quantise(frame: npt.ArrayLike, bit_depth: int) -> np.ndarray:
     if array.dtype == np.uint16:
         return array if bit_depth == 16 else np.round(array / 257.0).astype(np.uint8)
     if array.dtype.kind != "f":
-        raise ValueError(
-            f"frames must be float arrays in [0, 1] or uint8/uint16 arrays, got {array.dtype}"
-        )
+        raise ValueError(f"frames must be float arrays in [0, 1] or uint8/uint16 arrays, got {array.dtype}")
     if not np.all(np.isfinite(array)):
         raise ValueError("frame contains NaN or inf")
     lo, hi = float(array.min()), float(array.max())
@@ -292,12 +279,18 @@ def _encode_png(image: np.ndarray) -> bytes:
 # --------------------------------------------------------------------------- writer
 
 
-def _prepare_output_dir(path: Path, overwrite: bool) -> None:
+def _check_output_dir(path: Path, overwrite: bool) -> bool:
+    """Whether `path` holds something to replace; raise if that is not allowed."""
     if path.exists() and not path.is_dir():
         raise DataError(f"{path}: exists and is not a folder")
-    if path.is_dir() and any(path.iterdir()):
-        if not overwrite:
-            raise DataError(f"{path}: folder is not empty; pass overwrite=True to replace it")
+    occupied = path.is_dir() and any(path.iterdir())
+    if occupied and not overwrite:
+        raise DataError(f"{path}: folder is not empty; pass overwrite=True to replace it")
+    return occupied
+
+
+def _prepare_output_dir(path: Path, overwrite: bool) -> None:
+    if _check_output_dir(path, overwrite):
         # Remove the manifest first, so the folder stops claiming to be a complete dataset.
         for name in (MANIFEST_NAME, WRENCH_NAME, CONTACTS_NAME):
             (path / name).unlink(missing_ok=True)
@@ -335,9 +328,9 @@ class DatasetWriter:
         frame_shape: tuple[int, int] | None = None,
         bit_depth: int = 8,
         source: str = "",
-        fps: float | None = None,
+        fps: _Real | None = None,
         protocol: str | None = None,
-        fidelity: str | float | None = None,
+        fidelity: str | _Real | None = None,
         seed: int | None = None,
         true_device: dict | None = None,
         metadata: dict | None = None,
@@ -351,10 +344,10 @@ class DatasetWriter:
         self.bit_depth = bit_depth
         self.frame_shape = None if frame_shape is None else tuple(map(int, frame_shape))
         optional = dict(
-            fps=fps,
+            fps=_plain(fps),
             true_device=true_device,
             protocol=protocol,
-            fidelity=fidelity,
+            fidelity=_plain(fidelity),
             seed=seed,
             metadata=metadata,
         )
@@ -372,9 +365,7 @@ class DatasetWriter:
             "created": "",
         }
         # Fail now on bad metadata rather than after writing thousands of frames.
-        validate_json(
-            dict(self._manifest, created=_now()), "dataset", source=str(self.path / MANIFEST_NAME)
-        )
+        validate_json(dict(self._manifest, created=_now()), "dataset", source=str(self.path / MANIFEST_NAME))
         _prepare_output_dir(self.path, overwrite)
         self._names: list[str] = []
         self._seen: set[str] = set()
@@ -404,9 +395,9 @@ class DatasetWriter:
         wrench: npt.ArrayLike,
         *,
         name: str | None = None,
-        t: float | None = None,
-        contact: bool | int | None = None,
-        latent: Mapping[str, float] | None = None,
+        t: _Real | None = None,
+        contact: bool | np.bool_ | int | None = None,
+        latent: Mapping[str, _Real] | None = None,
     ) -> str:
         """Write one frame and record its wrench.
 
@@ -455,9 +446,7 @@ class DatasetWriter:
             )
         image = _quantise(frame, self.bit_depth)
         if self.frame_shape is not None and image.shape != self.frame_shape:
-            raise ValueError(
-                f"frame {name!r}: shape {image.shape} differs from the dataset's {self.frame_shape}"
-            )
+            raise ValueError(f"frame {name!r}: shape {image.shape} differs from the dataset's {self.frame_shape}")
         atomic_write_bytes(self.path / FRAMES_DIR / name, _encode_png(image))
         self.frame_shape = image.shape
         self._optional = optional
@@ -469,7 +458,7 @@ class DatasetWriter:
         if contact is not None:
             self._contacts.append(int(contact))
         if latent is not None:
-            self._latents.append([float(latent[k]) for k in latent_keys])
+            self._latents.append([float(value) for value in latent.values()])
         return name
 
     def close(self) -> Path:
@@ -486,7 +475,10 @@ class DatasetWriter:
             rows = []
             for i, name in enumerate(self._names):
                 row = [name, *map(repr, self._wrenches[i].tolist())]
-                row += [repr(self._times[i])] * has_t + [self._contacts[i]] * has_contact
+                if has_t:
+                    row.append(repr(self._times[i]))
+                if has_contact:
+                    row.append(self._contacts[i])
                 rows.append(row)
             atomic_write_text(self.path / WRENCH_NAME, _format_csv(header, rows))
             manifest = dict(
@@ -512,6 +504,11 @@ class DatasetWriter:
         """Stop without writing a manifest; the frames written so far stay on disk."""
         if self._state == "open":
             self._state = "aborted"
+
+
+def _plain(value: Any) -> Any:
+    """A NumPy scalar as the Python number JSON can hold."""
+    return value.item() if isinstance(value, np.generic) else value
 
 
 def _now() -> str:
@@ -561,8 +558,7 @@ class Dataset:
         for name, row in zip(table.frames, table.rows):
             if not (frames_dir / name).is_file():
                 raise DataError(
-                    f"{self.path / WRENCH_NAME} row {row}: field 'frame': "
-                    f"{frames_dir / name} does not exist"
+                    f"{self.path / WRENCH_NAME} row {row}: field 'frame': {frames_dir / name} does not exist"
                 )
         self._table = table
         for array in (table.wrenches, table.t, table.contact):
@@ -740,7 +736,7 @@ def import_recording(
     skip_bad: bool = False,
     progress: bool = True,
     bit_depth: int | None = None,
-    fps: float | None = None,
+    fps: _Real | None = None,
     protocol: str | None = None,
     source: str | None = None,
     overwrite: bool = False,
@@ -777,6 +773,7 @@ def import_recording(
             raise DataError(f"{source_path}: the recording must not lie inside out_dir {out_dir}")
     if not frames_dir.is_dir():
         raise DataError(f"{frames_dir}: no such folder")
+    _check_output_dir(out_dir, overwrite)
     table = _read_wrench_table(wrench_csv, strict=False)
     if not table.frames:
         raise DataError(f"{wrench_csv}: no data rows")
@@ -801,9 +798,10 @@ def import_recording(
     writer: DatasetWriter | None = None
     first_shape: tuple[int, int] | None = None
     n_written = 0
+    progress_bar = tqdm(total=len(table.frames), disable=not progress, unit="frame", desc="import")
     try:
-        rows = tqdm(range(len(table.frames)), disable=not progress, unit="frame", desc="import")
-        for i in rows:
+        for i in range(len(table.frames)):
+            progress_bar.update(1)
             name, row = table.frames[i], table.rows[i]
             try:
                 image = _load_gray(frames_dir / name)
@@ -824,7 +822,7 @@ def import_recording(
                 continue
             if not np.all(np.isfinite(table.wrenches[i])):
                 problems.append(
-                    (row, name, f"{wrench_csv} row {row}: wrench {table.wrenches[i].tolist()}")
+                    (row, name, f"{wrench_csv} row {row}: wrench {table.wrenches[i].tolist()} is not finite")
                 )
                 continue
             if problems and not skip_bad:
@@ -853,8 +851,7 @@ def import_recording(
             listing = "\n".join(f"  row {row}: {message}" for row, _, message in problems)
             hint = "" if skip_bad else " (pass skip_bad=True to skip them)"
             raise DataError(
-                f"{len(problems)} of {len(table.frames)} frames in {wrench_csv} could not be "
-                f"imported{hint}:\n{listing}"
+                f"{len(problems)} of {len(table.frames)} frames in {wrench_csv} could not be imported{hint}:\n{listing}"
             )
         assert writer is not None and first_shape is not None
         writer.close()
@@ -862,6 +859,8 @@ def import_recording(
         if writer is not None:
             writer.abort()
         raise
+    finally:
+        progress_bar.close()
     return ImportReport(
         out_dir=out_dir,
         n_frames=n_written,
@@ -890,11 +889,14 @@ def export_recording(
     frames_dir.mkdir(parents=True, exist_ok=True)
     for i, name in enumerate(dataset.frame_names):
         atomic_write_bytes(frames_dir / name, dataset.frame_path(i).read_bytes())
-    has_t, has_contact = dataset.t is not None, dataset.contact is not None
-    header = ["frame", *WRENCH_COLUMNS] + ["t"] * has_t + ["contact"] * has_contact
+    t, contact = dataset.t, dataset.contact
+    header = ["frame", *WRENCH_COLUMNS] + ["t"] * (t is not None) + ["contact"] * (contact is not None)
     rows = []
     for i, name in enumerate(dataset.frame_names):
         row = [name, *map(repr, dataset.wrenches[i].tolist())]
-        row += [repr(float(dataset.t[i]))] * has_t + [int(dataset.contact[i])] * has_contact
+        if t is not None:
+            row.append(repr(float(t[i])))
+        if contact is not None:
+            row.append(int(contact[i]))
         rows.append(row)
     atomic_write_text(wrench_csv, _format_csv(header, rows))

@@ -1,0 +1,230 @@
+r"""The forward model: wrench and contact → tractions → deformation → frame.
+
+Two fidelities share the mechanics and illumination:
+
+- `model` renders what the inversion assumes: truncated Fourier gratings, Gaussian
+  defocus of the far grating applied per harmonic, a Gaussian lens PSF, an ideal
+  rectification. Deterministic and differentiable in the wrench, the contact and every
+  device parameter.
+- `high` renders what a real unit adds: supersampled binary gratings (all harmonics,
+  aliasing included), defocus and PSF as real convolutions, pixel integration, residual
+  lens distortion, a slowly varying grating phase error from fabrication, and shot and
+  read noise with 8-bit quantisation. The unit's parameters themselves may deviate from
+  the nominal design; that is the caller's choice of `device`.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+
+from ._contact import Contact, surface_grid, surface_tractions, SurfaceGrid
+from ._device import Device
+from ._elastomer import surface_displacement
+from ._optics import (
+    background_radiance,
+    binary_harmonics,
+    camera_response,
+    contact_light,
+    gaussian_blur_fft,
+    gaussian_mtf,
+    image_coordinates,
+    line_transmission,
+    separable_gaussian_blur,
+)
+
+
+class Deformation(eqx.Module):
+    """Mechanical state of the contact surface on a [`SurfaceGrid`][].
+
+    `displacement` is `(ux, uy, w)` in mm (w > 0 into the sensor), `tractions` is
+    `(tx, ty, p)` in MPa, `light` the brightness scattered in the elastomer (glow and rim).
+    """
+
+    grid: SurfaceGrid
+    tractions: Float[Array, "3 h w"]
+    displacement: Float[Array, "3 h w"]
+    light: Float[Array, "h w"]
+
+
+def deformation(device: Device, wrench: Float[Array, "6"], contact: Contact, shape: tuple[int, int]) -> Deformation:
+    """Solve the elastomer for `wrench` applied through `contact`, on a grid of `shape` cells."""
+    grid = surface_grid(shape, device.px_per_mm, (device.height, device.width), device.a, device.Z)
+    tractions = surface_tractions(wrench, contact, grid)
+    e = device.elastomer
+    displacement = surface_displacement(tractions, grid.spacing, e.E, e.nu, e.thickness)
+    light = contact_light(device, tractions[2], wrench[2], contact, grid)
+    return Deformation(grid=grid, tractions=tractions, displacement=displacement, light=light)
+
+
+def grating_phases(
+    device: Device,
+    x: Float[Array, "h w"],
+    y: Float[Array, "h w"],
+    displacement: Float[Array, "3 h w"],
+) -> tuple[Float[Array, "sets h w"], Float[Array, "sets h w"]]:
+    r"""Phases of every line set of the upper and reference grating at rectified points (x, y).
+
+    Upper grating: $\varphi_1 = k_1 \cdot (X (1 - w/(Z + a)) - u) + \phi_1$ with
+    $X = x (Z + a)/Z$ the surface point on the undeformed ray; reference grating:
+    $\varphi_2 = k_2 \cdot x + \phi_2$.
+    """
+    ux, uy, w = displacement
+    magnification = (device.Z + device.a) / device.Z
+    shrink = 1 - w / (device.Z + device.a)
+    X = x * magnification * shrink - ux
+    Y = y * magnification * shrink - uy
+    k1 = device.upper_wavevectors()
+    k2 = device.reference_wavevectors()
+    phase1 = k1[:, 0, None, None] * X[None] + k1[:, 1, None, None] * Y[None] + device.optics.phase1[:, None, None]
+    phase2 = k2[:, 0, None, None] * x[None] + k2[:, 1, None, None] * y[None] + device.optics.phase2[:, None, None]
+    return phase1, phase2
+
+
+def _upsample(field: Float[Array, "*c h w"], shape: tuple[int, int]) -> Float[Array, "*c H W"]:
+    return jax.image.resize(field, (*field.shape[:-2], *shape), method="linear")
+
+
+def render_deformed(
+    device: Device,
+    displacement: Float[Array, "3 h w"],
+    light: Float[Array, "h w"],
+    exposure: ArrayLike = 1.0,
+) -> Float[Array, "h w"]:
+    """The `model`-fidelity frame for a given surface displacement and elastomer light.
+
+    `displacement` `(ux, uy, w)` (mm) and `light` are sampled at the surface point on
+    the undeformed ray of every pixel.
+    """
+    x, y = image_coordinates(device)
+    phase1, phase2 = grating_phases(device, x, y, displacement)
+    # The far grating is out of focus: each harmonic is attenuated by the defocus MTF.
+    k1_apparent = jnp.linalg.norm(device.apparent_upper_wavevectors()[0])
+    harmonic = jnp.arange(device.harmonics + 1, dtype=float)
+    c1 = binary_harmonics(device.duty1, device.harmonics) * gaussian_mtf(harmonic * k1_apparent, device.optics.defocus)
+    c2 = binary_harmonics(device.duty2, device.harmonics)
+    upper = jnp.prod(jax.vmap(line_transmission, in_axes=(0, None))(phase1, c1), axis=0)
+    reference = jnp.prod(jax.vmap(line_transmission, in_axes=(0, None))(phase2, c2), axis=0)
+    radiance = reference * (background_radiance(device, x, y) * upper + light)
+    radiance = separable_gaussian_blur(radiance, device.optics.psf_sigma)
+    return camera_response(device, radiance, exposure)
+
+
+@eqx.filter_jit
+def render_frame(
+    device: Device,
+    wrench: Float[Array, "6"],
+    contact: Contact,
+    *,
+    exposure: ArrayLike = 1.0,
+    mechanics_shape: tuple[int, int] = (128, 128),
+) -> Float[Array, "h w"]:
+    """Render the `model`-fidelity frame (float, unclipped, noise-free) of `device` under `wrench`.
+
+    **Arguments:**
+
+    - `device`: the sensor [`Device`][].
+    - `wrench`: `[fx, fy, fz, tx, ty, tz]` in N and N·m (moirejax wrench convention).
+    - `contact`: the [`Contact`][] patch carrying the load.
+    - `exposure`: multiplies the radiance (an exposure or illumination change).
+    - `mechanics_shape`: grid on which the elastomer is solved; the displacement is smooth
+      on the scale of the layer thickness, so a grid much coarser than the image suffices.
+
+    **Returns:** the frame, shape `(device.height, device.width)`, in camera units (about 0..1).
+    """
+    state = deformation(device, wrench, contact, mechanics_shape)
+    shape = (device.height, device.width)
+    return render_deformed(device, _upsample(state.displacement, shape), _upsample(state.light, shape), exposure)
+
+
+class HighFidelity(eqx.Module):
+    """What a real unit adds on top of its physical parameters (see the module docstring).
+
+    **Arguments:**
+
+    - `supersample`: samples per pixel along each axis for the binary gratings.
+    - `distortion`: residual radial distortion left after rectification: a pixel at
+      radius r actually sees the point at `r (1 + distortion (r/r_corner)^2)`.
+    - `phase_error`: RMS (rad) of a smooth random phase error of the upper grating
+      (laser-cut slits are not perfectly periodic).
+    - `phase_error_scale`: correlation length of that error (mm).
+    - `full_well`: electrons at pixel value 1 (shot noise).
+    - `read_noise`: read noise (electrons).
+    - `bit_depth`: quantisation of the output.
+    """
+
+    supersample: int = eqx.field(static=True, default=2)
+    distortion: float = 0.004
+    phase_error: float = 0.15
+    phase_error_scale: float = 4.0
+    full_well: float = 4000.0
+    read_noise: float = 4.0
+    bit_depth: int = eqx.field(static=True, default=8)
+
+
+def _binary_line(phase: Array, duty: ArrayLike) -> Array:
+    # Open where the wrapped phase is within pi*duty of a slit centre.
+    return (jnp.cos(phase) > jnp.cos(jnp.pi * jnp.asarray(duty))).astype(phase.dtype)
+
+
+def _smooth_random_field(key: PRNGKeyArray, shape: tuple[int, int], spacing: Array, scale: float) -> Array:
+    noise = jr.normal(key, shape)
+    field = gaussian_blur_fft(noise, scale, spacing)
+    return field / (jnp.std(field) + 1e-12)
+
+
+@eqx.filter_jit
+def render_frame_high(
+    key: PRNGKeyArray,
+    device: Device,
+    wrench: Float[Array, "6"],
+    contact: Contact,
+    fidelity: HighFidelity = HighFidelity(),
+    *,
+    exposure: ArrayLike = 1.0,
+    mechanics_shape: tuple[int, int] = (128, 128),
+    fabrication_key: PRNGKeyArray | None = None,
+) -> Float[Array, "h w"]:
+    """Render a `high`-fidelity frame, noisy and quantised to `fidelity.bit_depth` (values in [0, 1]).
+
+    `fabrication_key` fixes the unit's grating phase error (the same for every frame of
+    one unit); `key` draws the per-frame noise.
+    """
+    s = fidelity.supersample
+    H, W = device.height * s, device.width * s
+    state = deformation(device, wrench, contact, mechanics_shape)
+    # Sample points of the supersampled pixels, then distort them as the residual
+    # lens distortion would.
+    x, y = image_coordinates(device, (H, W))
+    corner2 = (device.width / 2 / device.px_per_mm) ** 2 + (device.height / 2 / device.px_per_mm) ** 2
+    factor = 1 + fidelity.distortion * (x**2 + y**2) / corner2
+    x, y = x * factor, y * factor
+    # Mechanics fields at the distorted points (map_coordinates in grid index space).
+    mh, mw = mechanics_shape
+    step_x = device.width / mw / device.px_per_mm
+    step_y = device.height / mh / device.px_per_mm
+    cols = x / step_x + (mw - 1) / 2
+    rows = (mh - 1) / 2 - y / step_y
+    sample = jax.vmap(lambda f: jax.scipy.ndimage.map_coordinates(f, [rows, cols], order=1, mode="nearest"))
+    displacement = sample(state.displacement)
+    light = sample(state.light[None])[0]
+    phase1, phase2 = grating_phases(device, x, y, displacement)
+    fab_key = jr.PRNGKey(0) if fabrication_key is None else fabrication_key
+    spacing = 1 / (device.px_per_mm * s)
+    error = _smooth_random_field(fab_key, (H, W), spacing, fidelity.phase_error_scale)
+    phase1 = phase1 + fidelity.phase_error * error[None]
+    upper = jnp.prod(_binary_line(phase1, device.duty1), axis=0)
+    reference = jnp.prod(_binary_line(phase2, device.duty2), axis=0)
+    # Defocus of the far grating as a real blur of the binary pattern.
+    upper = separable_gaussian_blur(upper, device.optics.defocus * device.px_per_mm * s, radius=4)
+    radiance = reference * (background_radiance(device, x, y) * upper + light)
+    radiance = separable_gaussian_blur(radiance, device.optics.psf_sigma * s, radius=3 * s)
+    # Pixel integration: box average of the supersamples.
+    radiance = radiance.reshape(device.height, s, device.width, s).mean(axis=(1, 3))
+    clean = camera_response(device, radiance, exposure)
+    electrons = jnp.clip(clean, 0, None) * fidelity.full_well
+    # Shot and read noise together: Gaussian with the Poisson variance plus the read variance.
+    noisy = electrons + jnp.sqrt(electrons + fidelity.read_noise**2) * jr.normal(key, electrons.shape)
+    levels = 2**fidelity.bit_depth - 1
+    return jnp.clip(jnp.round(noisy / fidelity.full_well * levels), 0, levels) / levels

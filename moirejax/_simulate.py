@@ -1,0 +1,291 @@
+"""Simulated units, load protocols and datasets.
+
+A simulated unit is a nominal design plus fabrication deviations (pitch, angle,
+separation, stiffness, grating registration, optics); datasets record the nominal
+device and, apart from it, the true one. Load protocols follow the paper's
+calibration (isolated axes), random mixed loads, a manipulation-like sequence, or no
+contact.
+"""
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+
+from ._contact import Contact
+from ._device import Device, device_to_json
+from ._render import HighFidelity, render_frame, render_frame_high
+
+
+Protocol = Literal["paper", "mixed", "sequence", "none"]
+PROTOCOLS = ("paper", "mixed", "sequence", "none")
+# The paper's calibrated ranges (Sec. Force/Torque Characterization), N and N*m.
+PAPER_RANGES = {"fx": 0.2, "fy": 0.2, "fz": 1.2, "tx": 0.012, "ty": 0.012, "tz": 0.008}
+
+
+@dataclasses.dataclass(frozen=True)
+class Deviations:
+    """Bounds of the uniform fabrication deviations of a unit from its nominal design."""
+
+    pitch: float = 0.02  # relative
+    angle_deg: float = 0.5
+    separation: float = 0.05  # relative
+    stiffness: float = 0.30  # relative
+    optics: float = 0.10  # relative, gain and background
+
+
+def perturb_device(key, nominal: Device, deviations: Deviations = Deviations()) -> Device:
+    """A unit drawn around `nominal`: every deviation uniform within `deviations`.
+
+    Draws whose moiré period leaves [0.5x, 2.5x] nominal are redrawn, so that the
+    fringes stay in the band a real unit of this design would be built for.
+    """
+    nominal_period = float(2 * jnp.pi / jnp.linalg.norm(nominal.moire_wavevectors()[0]))
+    for _ in range(100):
+        key, sub = jr.split(key)
+        u = np.asarray(jr.uniform(sub, (12,), minval=-1.0, maxval=1.0))
+        phases = np.asarray(jr.uniform(jr.fold_in(sub, 1), (2, nominal.n_sets), maxval=2 * math.pi))
+        dv = deviations
+        optics = eqx.tree_at(
+            lambda o: (o.gain, o.background, o.phase1, o.phase2),
+            nominal.optics,
+            (
+                nominal.optics.gain * (1 + dv.optics * u[8]),
+                nominal.optics.background * (1 + dv.optics / 2 * u[9]),
+                jnp.asarray(phases[0]),
+                jnp.asarray(phases[1]),
+            ),
+        )
+        elastomer = eqx.tree_at(lambda e: e.E, nominal.elastomer, nominal.elastomer.E * (1 + dv.stiffness * u[6]))
+        a = nominal.a * (1 + dv.separation * u[5])
+        elastomer = eqx.tree_at(lambda e: e.thickness, elastomer, jnp.minimum(elastomer.thickness, a))
+        unit = dataclasses.replace(
+            nominal,
+            p1=nominal.p1 * (1 + dv.pitch * u[0]),
+            p2=nominal.p2 * (1 + dv.pitch * u[1]),
+            alpha1=nominal.alpha1 + math.radians(dv.angle_deg) * u[2],
+            alpha2=nominal.alpha2 + math.radians(dv.angle_deg) * u[3],
+            a=a,
+            elastomer=elastomer,
+            optics=optics,
+        )
+        period = float(2 * jnp.pi / jnp.linalg.norm(unit.moire_wavevectors(), axis=-1).min())
+        if 0.5 * nominal_period <= period <= 2.5 * nominal_period:
+            return unit
+    raise ValueError("could not draw a unit with a usable moire period; reduce the deviations")
+
+
+@dataclasses.dataclass
+class LoadSchedule:
+    """Wrenches (N, N*m), contact latents and flags of a sequence of frames."""
+
+    wrench: np.ndarray  # (n, 6)
+    x0: np.ndarray
+    y0: np.ndarray
+    radius: np.ndarray
+    contact: np.ndarray  # (n,) bool
+    t: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.wrench)
+
+    def contact_at(self, i: int) -> Contact:
+        return Contact(x0=float(self.x0[i]), y0=float(self.y0[i]), radius=float(self.radius[i]))
+
+
+def _centred_moments(fz, x0, y0):
+    # Tx = y0 Fz and Ty = -x0 Fz for pressure centred on the contact (N*mm -> N*m).
+    return y0 * fz / 1000.0, -x0 * fz / 1000.0
+
+
+def load_schedule(protocol: str, n: int, seed: int = 0) -> LoadSchedule:
+    """The loads of `n` frames of `protocol` (`paper`, `mixed`, `sequence` or `none`)."""
+    if protocol not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
+    if n < 1:
+        raise ValueError(f"need at least one frame, got n={n}")
+    rng = np.random.default_rng(seed)
+    wrench = np.zeros((n, 6))
+    x0, y0 = np.zeros(n), np.zeros(n)
+    radius = np.full(n, 3.0)
+    contact = np.ones(n, dtype=bool)
+    t = None
+    if protocol == "none":
+        contact[:] = False
+    elif protocol == "paper":
+        # Isolated axes as in the paper: (i) centre presses, (ii) shear under preload,
+        # (iii) twist about the centre under preload, (iv) off-centre presses.
+        group = np.arange(n) % 4
+        for i in range(n):
+            radius[i] = rng.uniform(2.5, 4.5)
+            if group[i] == 0:
+                wrench[i, 2] = rng.uniform(0.05, 1.2)
+            elif group[i] == 1:
+                wrench[i, 2] = rng.uniform(0.3, 0.8)
+                axis = rng.integers(2)
+                wrench[i, axis] = rng.uniform(-0.2, 0.2)
+            elif group[i] == 2:
+                wrench[i, 2] = rng.uniform(0.5, 1.0)
+                radius[i] = rng.uniform(4.0, 5.5)
+                wrench[i, 5] = rng.uniform(-0.008, 0.008)
+            else:
+                fz = rng.uniform(0.3, 1.2)
+                reach = min(10.0, 12.0 / fz)
+                x0[i], y0[i] = rng.uniform(-reach, reach, 2)
+                wrench[i, 2] = fz
+                wrench[i, 3], wrench[i, 4] = _centred_moments(fz, x0[i], y0[i])
+    elif protocol == "mixed":
+        for i in range(n):
+            fz = rng.uniform(0.2, 1.2)
+            radius[i] = rng.uniform(2.5, 5.0)
+            reach = min(7.0, 10.0 / fz)
+            x0[i], y0[i] = rng.uniform(-reach, reach, 2)
+            fx, fy = rng.uniform(-0.2, 0.2, 2)
+            tx, ty = _centred_moments(fz, x0[i], y0[i])
+            # Moments about the origin: shear at an off-centre contact adds to Tz.
+            tz = rng.uniform(-0.006, 0.006) + (x0[i] * fy - y0[i] * fx) / 1000.0
+            wrench[i] = [fx, fy, fz, tx, ty, tz]
+    else:  # sequence: approach, press, twist, slide, release, at 60 Hz
+        t = np.arange(n) / 60.0
+        phase = np.linspace(0, 1, n)
+        for i, s in enumerate(phase):
+            radius[i] = 4.0
+            if s < 0.1 or s > 0.9:
+                contact[i] = False
+                continue
+            ramp = min(1.0, (s - 0.1) / 0.1, (0.9 - s) / 0.1)
+            wrench[i, 2] = 1.0 * ramp
+            if 0.3 <= s < 0.5:
+                wrench[i, 5] = 0.006 * math.sin(math.pi * (s - 0.3) / 0.2)
+            if 0.5 <= s < 0.75:
+                wrench[i, 0] = 0.15 * math.sin(math.pi * (s - 0.5) / 0.25)
+    wrench[~contact] = 0.0
+    return LoadSchedule(wrench=wrench, x0=x0, y0=y0, radius=radius, contact=contact, t=t)
+
+
+class Simulator(eqx.Module):
+    """Renders frames of one unit, jit-compiled once for all frames.
+
+    **Arguments:**
+
+    - `device`: the unit's true parameters.
+    - `fidelity`: `"model"` or `"high"`.
+    - `high`: the [`HighFidelity`][] non-idealities (used for `"high"`).
+    - `fabrication_key`: fixes the unit's grating phase error.
+    """
+
+    device: Device
+    fidelity: str = eqx.field(static=True, default="high")
+    high: HighFidelity = HighFidelity()
+    fabrication_key: jax.Array = eqx.field(default_factory=lambda: jr.PRNGKey(7))
+
+    def __check_init__(self):
+        if self.fidelity not in ("model", "high"):
+            raise ValueError(f"fidelity must be 'model' or 'high', got {self.fidelity!r}")
+
+    def frame(self, key, wrench, contact: Contact) -> jax.Array:
+        """One frame in [0, 1]; `model` frames are noise-free and unquantised."""
+        wrench = jnp.asarray(wrench, dtype=float)
+        if self.fidelity == "model":
+            return jnp.clip(render_frame(self.device, wrench, contact), 0.0, 1.0)
+        return render_frame_high(key, self.device, wrench, contact, self.high, fabrication_key=self.fabrication_key)
+
+
+def simulate_dataset(
+    out: str | Path,
+    nominal: Device,
+    protocol: str,
+    n: int,
+    *,
+    seed: int = 0,
+    fidelity: str = "high",
+    unit: Device | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+) -> Path:
+    """Simulate `n` frames of `protocol` for a unit of design `nominal` into a dataset folder.
+
+    With `fidelity="high"` and no `unit` given, the unit deviates from `nominal` by
+    [`perturb_device`][] with `seed`; the manifest records the nominal device and the true
+    one apart. A contact sheet PNG of sample frames is written beside the dataset, and a
+    `sequence` protocol also writes an MP4.
+    """
+    from tqdm.auto import tqdm
+
+    from ._dataset import DatasetWriter
+
+    if unit is None:
+        unit = perturb_device(jr.PRNGKey(seed), nominal) if fidelity == "high" else nominal
+    simulator = Simulator(unit, fidelity=fidelity, fabrication_key=jr.PRNGKey(seed + 1000))
+    schedule = load_schedule(protocol, n, seed)
+    out = Path(out)
+    key = jr.PRNGKey(seed + 2000)
+    samples = []
+    sample_at = set(np.linspace(0, n - 1, min(n, 12)).astype(int).tolist())
+    video = None
+    with DatasetWriter(
+        out,
+        device=device_to_json(nominal),
+        true_device=device_to_json(unit),
+        frame_shape=(nominal.height, nominal.width),
+        source=f"moirejax simulate ({fidelity} fidelity)",
+        protocol=protocol,
+        fidelity=fidelity,
+        seed=seed,
+        fps=60.0 if protocol == "sequence" else None,
+        overwrite=overwrite,
+    ) as writer:
+        for i in tqdm(range(n), desc=f"simulate {protocol}", disable=not progress, unit="frame"):
+            frame = np.asarray(simulator.frame(jr.fold_in(key, i), schedule.wrench[i], schedule.contact_at(i)))
+            writer.add(
+                frame,
+                schedule.wrench[i],
+                t=None if schedule.t is None else float(schedule.t[i]),
+                contact=bool(schedule.contact[i]),
+                latent={"x0": schedule.x0[i], "y0": schedule.y0[i], "radius": schedule.radius[i]},
+            )
+            if i in sample_at:
+                samples.append((i, frame))
+            if protocol == "sequence":
+                video = _append_video(video, out.with_suffix(".mp4"), frame)
+    if video is not None:
+        video.release()
+    write_contact_sheet(out.with_name(out.name + "_contact_sheet.png"), samples, schedule)
+    return out
+
+
+def _append_video(video, path: Path, frame: np.ndarray):
+    import cv2
+
+    image = (np.clip(frame, 0, 1) * 255).astype(np.uint8)
+    if video is None:
+        video = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 60.0, image.shape[::-1], False)
+    video.write(image)
+    return video
+
+
+def write_contact_sheet(path: Path, samples: list[tuple[int, np.ndarray]], schedule: LoadSchedule) -> None:
+    """A grid of sample frames, each titled with its wrench."""
+    from ._plotting import pyplot, save_figure
+
+    plt = pyplot()
+    cols = min(4, len(samples))
+    rows = math.ceil(len(samples) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.4 * rows), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for ax, (i, frame) in zip(axes.flat, samples):
+        ax.imshow(frame, cmap="gray", vmin=0, vmax=1)
+        w = schedule.wrench[i]
+        ax.set_title(
+            f"#{i} F=({w[0]:+.2f},{w[1]:+.2f},{w[2]:.2f}) N\nT=({w[3] * 1e3:+.1f},{w[4] * 1e3:+.1f},{w[5] * 1e3:+.1f}) mN·m",
+            fontsize=7,
+        )
+    fig.tight_layout()
+    save_figure(fig, path)
