@@ -30,6 +30,13 @@ $f(x) = \int \hat f(q)\, e^{+i q\cdot x}$ (so $\partial_x \to i q_x$, see
 pressure (Boussinesq, $\nu < 1/2$). In a thin bonded layer near incompressibility the
 numerator turns negative and the pressed material is squeezed outward: the coupling that
 lets a grating on the surface see the normal load.
+
+Numerics: the closed forms are evaluated as $(h/\mu)\, b(s)$ with $b$ regular at $s = 0$,
+using only $e^{-2s}$ (no overflow), `expm1`, and a series for $\sinh 2s - 2s$ (the whole
+normal compliance as $\nu \to 1/2$). The exponentials saturate at $s = 30$, where the
+layer is a half-space to float64 precision. $q = 0$ takes its exact limit behind a double
+`where`, and the coupling is carried as $C_{Lw} / (i|q|)$ so that
+$C_{xz} = i q_x\, C_{Lw}/(i|q|)$ is smooth through $q = 0$.
 """
 
 import jax
@@ -242,7 +249,9 @@ def surface_displacement(
     `layer_compliance`, using the repository's Fourier convention ($k_x$ along columns,
     $k_y = -2\pi\,\mathrm{fftfreq}$ along rows because $y$ points up). The field is
     periodic with the grid's period; pad the traction if the contact must not feel its
-    periodic images. Exact for band-limited tractions.
+    periodic images. Exact for band-limited tractions. On even grids the Nyquist bins keep
+    only the part of $C$ even in the aliased component, so the result stays mirror-symmetric.
+    Uses `rfft2`/`irfft2`; differentiable in every argument.
 
     **Arguments:**
 

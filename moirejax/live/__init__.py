@@ -1,0 +1,45 @@
+"""Live sensing: frame sources, rectification, the GateER contact gate, vision mode, output sinks and the live loop.
+
+This is I/O and control code in numpy/OpenCV around the differentiable core: the wrench
+inversion plugs in as `process_tactile` of [`run_pipeline`][].
+"""
+
+from ._camera import (
+    AbstractFrameSource as AbstractFrameSource,
+    CallableSource as CallableSource,
+    FolderSource as FolderSource,
+    Frame as Frame,
+    Reconnect as Reconnect,
+    SourceEvent as SourceEvent,
+    VideoSource as VideoSource,
+)
+from ._gate import GateDecision as GateDecision, GateER as GateER
+from ._pipeline import LiveSummary as LiveSummary, run_pipeline as run_pipeline
+from ._rectify import (
+    calibrate_rectification as calibrate_rectification,
+    detect_blobs as detect_blobs,
+    load_rectification as load_rectification,
+    order_grid as order_grid,
+    Rectification as Rectification,
+    save_rectification as save_rectification,
+)
+from ._sinks import (
+    FileSink as FileSink,
+    make_record as make_record,
+    StreamSink as StreamSink,
+    StripChart as StripChart,
+    UdpSink as UdpSink,
+    VideoRecorder as VideoRecorder,
+    WrenchRecord as WrenchRecord,
+)
+from ._vision import (
+    classify_patch as classify_patch,
+    ColourMatch as ColourMatch,
+    ColourProbe as ColourProbe,
+    find_spectral_peaks as find_spectral_peaks,
+    HUE_CLASSES as HUE_CLASSES,
+    hue_histogram as hue_histogram,
+    identify_colour as identify_colour,
+    MoireNotch as MoireNotch,
+    suppress_moire as suppress_moire,
+)

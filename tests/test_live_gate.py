@@ -1,0 +1,131 @@
+"""GateER on synthetic moire sequences: touches switch within 2 frames; drift, noise and shadows do not."""
+
+import numpy as np
+import pytest
+
+from moirejax.live import GateER
+
+
+H = W = 128
+ROWS, COLS = np.mgrid[0:H, 0:W].astype(np.float64)
+P1, P2, TILT = 3.0, 3.5, 0.05  # grating periods (px) and tilt: a ~20 px moire
+K1 = 2 * np.pi / P1 * np.array([np.cos(TILT), np.sin(TILT)])  # (col, row) rad/px
+K2 = 2 * np.pi / P2 * np.array([1.0, 0.0])
+
+
+def moire_frame(t, rng, *, touch=None, drift=0.2, noise=0.015, shadow=None):
+    """Product of two cosine gratings under drifting illumination, with an optional touch.
+
+    `touch = (phase_amplitude, col, row, sigma)`: a Gaussian phase distortion of the upper
+    grating plus the brighter LED rim. `shadow = (col, row, sigma)`: a scene object seen
+    through the sensor (vision mode), a soft multiplicative shadow.
+    Illumination drifts +-`drift` over 200 frames with a changing left-right gradient; the
+    moire phase creeps by 0.1 rad (thermal drift); 0.1 of background does not scale.
+    """
+    phase = 0.1 * np.sin(2 * np.pi * t / 400)
+    brightness = np.ones((H, W))
+    if touch is not None:
+        amplitude, c, r, s = touch
+        bump = np.exp(-((COLS - c) ** 2 + (ROWS - r) ** 2) / (2 * s * s))
+        phase = phase + amplitude * bump
+        brightness = brightness + 0.2 * amplitude * bump
+    a = K1[0] * COLS + K1[1] * ROWS + phase
+    b = K2[0] * COLS + K2[1] * ROWS
+    transmission = (1 + np.cos(a)) * (1 + np.cos(b)) / 4
+    illumination = (1 + drift * np.sin(2 * np.pi * t / 200)) * (
+        1 + 0.3 * (COLS / W - 0.5) * np.cos(2 * np.pi * t / 300)
+    )
+    image = 0.1 + 0.6 * transmission * illumination * brightness
+    if shadow is not None:
+        c, r, s = shadow
+        image = image * (1 - 0.6 * np.exp(-((COLS - c) ** 2 + (ROWS - r) ** 2) / (2 * s * s)))
+    image = image + rng.normal(0.0, noise, image.shape)
+    return np.clip(image, 0, 1).astype(np.float32)
+
+
+def run(gate, n, touch_at=(), seed=0, **kwargs):
+    """Feed `n` frames; `touch_at` is a list of (start, stop, touch). Returns the decisions."""
+    rng = np.random.default_rng(seed)
+    decisions = []
+    for t in range(n):
+        touch = next((tc for start, stop, tc in touch_at if start <= t < stop), None)
+        decisions.append(gate.update(moire_frame(t, rng, touch=touch, **kwargs)))
+    return decisions
+
+
+def switch_frames(decisions):
+    return [t for t, d in enumerate(decisions) if d.switched]
+
+
+def test_drift_and_noise_never_switch():
+    decisions = run(GateER(), 400)
+    assert all(d.mode == "vision" for d in decisions)
+    quiet = max(d.energy_ratio for d in decisions)
+    # A clear margin below the default threshold, not a near miss.
+    assert quiet < 0.5 * decisions[-1].threshold
+
+
+def test_scene_shadow_in_vision_mode_does_not_switch():
+    gate = GateER()
+    rng = np.random.default_rng(1)
+    for t in range(200):
+        shadow = (t - 40.0, 64.0, 25.0)  # a soft object a bit larger than a fringe moves across
+        decision = gate.update(moire_frame(t, rng, shadow=shadow, noise=0.01))
+        assert decision.mode == "vision", (t, decision)
+
+
+@pytest.mark.parametrize("amplitude", [0.6, 2.0], ids=["light", "firm"])
+def test_touch_switches_within_two_frames(amplitude):
+    touches = [(100, 140, (amplitude, 60, 70, 8)), (250, 262, (amplitude, 35, 90, 8))]
+    decisions = run(GateER(), 320, touches)
+    switches = switch_frames(decisions)
+    assert len(switches) == 4, switches
+    for switch, edge in zip(switches, [100, 140, 250, 262]):
+        assert edge <= switch <= edge + 1, (switches, edge)
+    assert [decisions[t].mode for t in (99, 120, 200, 255, 300)] == ["vision", "tactile", "vision", "tactile", "vision"]
+
+
+def test_long_contact_does_not_leak_into_baseline():
+    # 150 frames of contact while the illumination drifts: release must still be seen.
+    decisions = run(GateER(), 320, [(60, 210, (1.0, 64, 64, 10))])
+    assert switch_frames(decisions) in ([60, 210], [60, 211])
+
+
+def test_explicit_wavevectors_match_automatic():
+    px_per_mm = 20.0
+    moire = K1 - K2  # (col, row) rad/px -> (kx, ky) rad/mm with y up
+    wavevectors = np.array([[moire[0] * px_per_mm, -moire[1] * px_per_mm]])
+    explicit = GateER(moire_wavevectors=wavevectors, px_per_mm=px_per_mm)
+    touches = [(50, 70, (1.0, 60, 70, 8))]
+    assert switch_frames(run(explicit, 100, touches)) == switch_frames(run(GateER(), 100, touches)) == [50, 70]
+    automatic = GateER()
+    run(automatic, 5)
+    found = automatic.wavevectors_px[0] * np.sign(automatic.wavevectors_px[0][0] * moire[0])
+    np.testing.assert_allclose(found, moire, atol=2 * np.pi / W)
+
+
+def test_hysteresis_and_dwell_state_machine():
+    gate = GateER(on_threshold=0.02, hysteresis=0.2, noise_factor=1.0, noise_rate=1e-9)
+    modes = [gate.step(e).mode for e in [0.01, 0.021, 0.018, 0.0165, 0.0155, 0.019, 0.0205]]
+    assert modes == ["vision", "tactile", "tactile", "tactile", "vision", "vision", "tactile"]
+    dwell = GateER(on_threshold=0.02, min_dwell_frames=2, noise_rate=1e-9)
+    # Two frames in vision before it may switch, then two in tactile before it may return.
+    modes = [dwell.step(e).mode for e in [0.05, 0.05, 0.05, 0.0, 0.0, 0.0]]
+    assert modes == ["vision", "vision", "tactile", "tactile", "vision", "vision"]
+
+
+def test_threshold_adapts_to_noise_floor():
+    quiet, noisy = GateER(), GateER()
+    run(quiet, 150, noise=0.005)
+    run(noisy, 150, noise=0.06, seed=3)
+    assert noisy.noise_level > 3 * quiet.noise_level
+    assert noisy.threshold >= quiet.threshold >= quiet.on_threshold
+
+
+def test_rejects_bad_frames():
+    gate = GateER()
+    gate.update(np.full((64, 64), 0.5, np.float32) + 0.2 * np.cos(0.5 * COLS[:64, :64]).astype(np.float32))
+    with pytest.raises(ValueError, match="differs"):
+        gate.update(np.zeros((32, 32), np.float32))
+    with pytest.raises(ValueError, match="2D"):
+        gate.update(np.zeros((64, 64, 3), np.float32))
