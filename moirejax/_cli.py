@@ -107,6 +107,34 @@ def _cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
+def _inverter_for(device, source, reference_path):
+    import numpy as np
+
+    from ._inversion import Inverter
+    from ._invert_io import find_reference, load_reference_image
+
+    shape = (device.height, device.width)
+    if reference_path:
+        reference, note = load_reference_image(reference_path), f"reference: {reference_path}"
+    else:
+        reference, note = find_reference(source, shape)
+    if reference is not None and reference.shape != shape:
+        raise ValueError(f"reference frame is {reference.shape}, device expects {shape}")
+    print(note + ("" if reference is not None else " (using the model's own no-load prediction)"), file=sys.stderr)
+    return Inverter(device, reference=None if reference is None else np.asarray(reference))
+
+
+def _cmd_invert(args: argparse.Namespace) -> int:
+    from ._device import load_device
+    from ._invert_io import invert_recording
+
+    device = load_device(args.device)
+    inverter = _inverter_for(device, args.data, args.reference)
+    counts = invert_recording(inverter, args.data, args.out, batch=args.batch, progress=not args.quiet)
+    print(f"wrote {args.out}: " + ", ".join(f"{n} {status}" for status, n in sorted(counts.items())))
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from ._demo import run_demo
 
@@ -146,6 +174,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skip-bad", action="store_true", help="skip missing or unreadable frames (listed)")
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(run=_cmd_import)
+
+    p = sub.add_parser("invert", help="turn every frame of a recording into a wrench with uncertainty")
+    p.add_argument("--device", required=True, metavar="FILE", help="device JSON (nominal or calibrated)")
+    p.add_argument("--data", required=True, metavar="SOURCE", help="dataset folder, video file or folder of frames")
+    p.add_argument("--out", required=True, metavar="CSV", help="output wrench CSV")
+    p.add_argument("--reference", metavar="IMAGE", help="no-contact frame of this unit (default: from the dataset)")
+    p.add_argument("--batch", type=int, default=1, help="invert N frames at once (throughput; no warm start)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(run=_cmd_invert)
 
     p = sub.add_parser("demo", help="the whole product on an embedded default, no hardware needed")
     p.add_argument("--out", default="moirejax-demo", help="output folder (default: moirejax-demo)")

@@ -77,7 +77,7 @@ class Optics(eqx.Module):
     glow_width: Float[Array, ""] = eqx.field(converter=_scalar, default=1.0)
     rim_gain: Float[Array, ""] = eqx.field(converter=_scalar, default=0.15)
     rim_width: Float[Array, ""] = eqx.field(converter=_scalar, default=0.6)
-    gain: Float[Array, ""] = eqx.field(converter=_scalar, default=2.5)
+    gain: Float[Array, ""] = eqx.field(converter=_scalar, default=0.9)
     offset: Float[Array, ""] = eqx.field(converter=_scalar, default=0.05)
     gamma: Float[Array, ""] = eqx.field(converter=_scalar, default=1.0)
     phase1: Float[Array, " sets"] = eqx.field(converter=lambda x: jnp.asarray(x, dtype=float), default=(0.0, 0.0))
@@ -220,7 +220,7 @@ def preset(name: str, **overrides: Any) -> Device:
     kwargs: dict[str, Any] = dict(p1=p1, p2=p2, a=3.0, Z=12.0)
     if overrides.get("layout") == "lines" and "optics" not in overrides:
         # One line set transmits more light: a lower gain keeps the same mean pixel level.
-        kwargs["optics"] = Optics(phase1=(0.0,), phase2=(0.0,), gain=1.0)
+        kwargs["optics"] = Optics(phase1=(0.0,), phase2=(0.0,), gain=0.8)
     kwargs.update(overrides)
     return Device(**kwargs)
 

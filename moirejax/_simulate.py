@@ -165,6 +165,9 @@ def load_schedule(protocol: str, n: int, seed: int = 0) -> LoadSchedule:
                 wrench[i, 5] = 0.006 * math.sin(math.pi * (s - 0.3) / 0.2)
             if 0.5 <= s < 0.75:
                 wrench[i, 0] = 0.15 * math.sin(math.pi * (s - 0.5) / 0.25)
+    if protocol in ("paper", "mixed") and n >= 8:
+        # A session starts unloaded: these frames give the unit's no-contact reference.
+        contact[: max(2, min(8, n // 50))] = False
     wrench[~contact] = 0.0
     return LoadSchedule(wrench=wrench, x0=x0, y0=y0, radius=radius, contact=contact, t=t)
 

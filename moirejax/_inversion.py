@@ -1,0 +1,393 @@
+r"""Per-frame wrench inversion: observed frame → wrench, contact, covariance, status.
+
+**Domain.** The residual lives in the demodulated domain: the complex fringe field of
+each family and the brightness, on the demodulator's coarse grid (32 × 32 by default),
+compared in the Fourier domain of that grid bin by bin inside each band. Three reasons:
+
+- *fast*: one FFT of the frame, then every solver step works on a few thousand numbers
+  and a 64 × 64 mechanics grid, never on a rendered 512 × 512 image;
+- *well conditioned*: the fringe phase responds linearly to surface displacement over a
+  wide range (rendered intensities wrap and saturate), and the carriers and their
+  aliasing, which no model reproduces exactly, are filtered out before comparing;
+- *statistically honest*: inside the band, the frame's Fourier coefficients of white
+  pixel noise are independent with equal variance, so dividing the coarse-grid spectrum
+  by the band window whitens the residual, and $(J^\top J)^{-1}$ scaled by the residual
+  variance is the Gauss–Newton covariance without a correlation fudge.
+
+**Reference.** Every unit has fixed-pattern deviations from any model (grating phase
+errors, vignetting, residual distortion). They are removed with a no-contact reference
+frame: the predicted fringe field is multiplied by the ratio of the observed to the
+predicted reference fringe field, and the predicted brightness change is added to the
+observed reference brightness.
+
+**Unknowns.** The scaled wrench (each axis over the paper's range), the contact centre,
+the log contact radius and the log exposure. Two weak priors make the problem well posed
+at light load: the centre of pressure stays near the contact centre (a pressure tilt
+is allowed but costs), and the radius stays near a typical indenter.
+"""
+
+import enum
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float, Int
+
+from ._band_model import complex_ratio, predicted_bands
+from ._contact import Contact, NMM_PER_NM
+from ._device import Device
+from ._observables import Demodulator, FringeFields
+
+
+# Scale of each wrench axis in the solver: the paper's calibrated ranges (N, N*m).
+WRENCH_SCALE = np.array([0.2, 0.2, 1.2, 0.012, 0.012, 0.008])
+N_UNKNOWNS = 10
+# Prior widths: centre-of-pressure offset from the contact centre (N*mm of moment), and
+# log contact radius around 3.5 mm.
+_TILT_PRIOR_NMM = 0.8
+_RADIUS_PRIOR = (math.log(3.5), 0.6)
+
+
+class Status(enum.IntEnum):
+    """Per-frame outcome of an inversion; `message` gives the human version."""
+
+    CONVERGED = 0
+    MAX_STEPS = 1
+    NONFINITE = 2
+    NO_CONTACT = 3
+    BAD_FRAME = 4
+    WRONG_SIZE = 5
+    UNREADABLE = 6
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    Status.CONVERGED: "converged",
+    Status.MAX_STEPS: "solver hit its step limit; wrench is the last iterate and may be inaccurate",
+    Status.NONFINITE: "frame or solution contains NaN/inf; no wrench",
+    Status.NO_CONTACT: "no contact detected; wrench is zero",
+    Status.BAD_FRAME: "frame is black, saturated or shows no fringes; no wrench",
+    Status.WRONG_SIZE: "frame has the wrong size for this device; no wrench",
+    Status.UNREADABLE: "frame could not be read or decoded; no wrench",
+}
+
+
+class Estimate(eqx.Module):
+    """The result of inverting one frame (or a batch, with a leading axis on every field).
+
+    - `wrench`: `[fx, fy, fz, tx, ty, tz]` in N and N·m.
+    - `covariance`: 6x6 covariance of the wrench; `sigma` its square-rooted diagonal.
+    - `contact`: the fitted [`Contact`][]; `exposure`: fitted exposure factor.
+    - `status`: an integer [`Status`][]; `steps`: solver steps; `rms`: the pixel noise level
+      that would explain the fit's residual (frame units); well above the camera noise
+      means the model does not explain the frame.
+    - `state`: the solver's unknowns, to warm-start the next frame.
+    """
+
+    wrench: Float[Array, "*b 6"]
+    covariance: Float[Array, "*b 6 6"]
+    sigma: Float[Array, "*b 6"]
+    contact: Contact
+    exposure: Float[Array, "*b"]
+    status: Int[Array, "*b"]
+    steps: Int[Array, "*b"]
+    rms: Float[Array, "*b"]
+    state: Float[Array, "*b 10"]
+
+
+def _unpack(y: Float[Array, "10"]) -> tuple[Float[Array, "6"], Contact, Float[Array, ""]]:
+    wrench = y[:6] * jnp.asarray(WRENCH_SCALE, y.dtype)
+    contact = Contact(x0=y[6], y0=y[7], radius=jnp.exp(y[8]))
+    return wrench, contact, jnp.exp(y[9])
+
+
+def initial_state(x0: float = 0.0, y0: float = 0.0, radius: float = 3.5, dtype=float) -> Float[Array, "10"]:
+    """Solver unknowns for zero load at a given contact guess."""
+    return jnp.asarray([0, 0, 0, 0, 0, 0, x0, y0, math.log(radius), 0.0], dtype=dtype)
+
+
+class Inverter(eqx.Module):
+    """Inverts frames of one unit into wrenches. Build once per unit (and reference).
+
+    **Arguments:**
+
+    - `device`: the (nominal or calibrated) [`Device`][] the model uses.
+    - `reference`: a no-contact frame of this unit, or `None` to take the model's own
+      prediction (then fixed-pattern deviations of the unit are not removed).
+    - `crop_shape`: coarse demodulation grid.
+    - `model_shape`: grid of the mechanics and the predicted fringe field.
+    - `band_fraction`: band radius over |K| of the demodulator.
+    - `max_steps`, `rtol`, `atol`: Levenberg–Marquardt settings.
+    - `contact_threshold`: how many times more than noise alone the fit must explain,
+      against zero load, for a frame to count as in contact.
+    """
+
+    device: Device
+    demodulator: Demodulator
+    reference: FringeFields
+    model_reference: FringeFields
+    fringe_weight: Float[Array, "families m n"]
+    brightness_weight: Float[Array, "m n"]
+    noise_residuals: Float[Array, "samples n"]
+    glow_per_newton: Float[Array, ""]
+    model_shape: tuple[int, int] = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+    contact_threshold: float = eqx.field(static=True)
+
+    def __init__(
+        self,
+        device: Device,
+        reference=None,
+        *,
+        crop_shape: tuple[int, int] = (32, 32),
+        model_shape: tuple[int, int] = (64, 64),
+        band_fraction: float = 0.45,
+        max_steps: int = 40,
+        rtol: float = 1e-5,
+        atol: float = 1e-5,
+        contact_threshold: float = 8.0,
+    ):
+        self.device = device
+        self.model_shape = model_shape
+        self.max_steps = max_steps
+        self.rtol = rtol
+        self.atol = atol
+        self.contact_threshold = contact_threshold
+        self.demodulator = Demodulator(
+            (device.height, device.width),
+            float(device.px_per_mm),
+            np.asarray(device.moire_wavevectors()),
+            crop_shape=crop_shape,
+            band_fraction=band_fraction,
+        )
+        zero = initial_state(dtype=device.p1.dtype)
+        if reference is None:
+            self.model_reference = self._predict(zero, None)
+            self.reference = self.model_reference
+        else:
+            reference = jnp.asarray(reference, dtype=device.p1.dtype)
+            if reference.shape != (device.height, device.width):
+                raise ValueError(
+                    f"reference frame has shape {reference.shape}, device expects {(device.height, device.width)}"
+                )
+            self.reference = self.demodulator(reference)
+            self.model_reference = self._predict(zero, self.reference.reference_wavevector)
+        # The demodulator divides by the apodization envelope, which amplifies noise near
+        # the border; weighting by the envelope undoes that (and drops the border).
+        self.fringe_weight = self.demodulator.fringe_envelope.astype(zero.dtype)
+        self.brightness_weight = self.demodulator.brightness_envelope.astype(zero.dtype)
+        self.noise_residuals = self._unit_noise_residuals()
+        # Integrated brightness excess per newton of a centred press: starts Fz.
+        press = zero.at[2].set(1.0 / WRENCH_SCALE[2])
+        excess = self._predict(press, None).brightness - self._predict(zero, None).brightness
+        self.glow_per_newton = jnp.sum(excess * self.brightness_weight)
+
+    def _predict(self, y, reference_wavevector) -> FringeFields:
+        wrench, contact, exposure = _unpack(y)
+        return predicted_bands(
+            self.device,
+            self.demodulator,
+            wrench,
+            contact,
+            exposure,
+            model_shape=self.model_shape,
+            reference_wavevector=reference_wavevector,
+        )
+
+    def _unit_noise_residuals(self, samples: int = 48) -> Float[Array, "samples n"]:
+        """Data residuals that unit white pixel noise alone produces, `samples` draws.
+
+        Demodulation is linear, so these carry the full correlation of the coarse fields;
+        the per-frame covariance is a sandwich estimate over them (see [`Inverter.solve`][]).
+        """
+        rng = np.random.default_rng(0)
+        frames = jnp.asarray(rng.normal(size=(samples, *self.demodulator.frame_shape)), dtype=self.fringe_weight.dtype)
+
+        def residual(frame):
+            fields = self.demodulator(frame)
+            fringe = fields.fringe * self.fringe_weight.astype(fields.fringe.dtype)
+            brightness = fields.brightness * self.brightness_weight
+            return jnp.concatenate([fringe.real.ravel(), fringe.imag.ravel(), brightness.ravel()])
+
+        return jax.lax.map(residual, frames)
+
+    def _data_residuals(self, y, observed: FringeFields):
+        predicted = self._predict(y, observed.reference_wavevector)
+        # Fixed-pattern correction by the reference frame (see the module docstring).
+        fringe = predicted.fringe * complex_ratio(self.reference.fringe, self.model_reference.fringe)
+        brightness = predicted.brightness - self.model_reference.brightness + self.reference.brightness
+        fringe_residual = (observed.fringe - fringe) * self.fringe_weight.astype(fringe.dtype)
+        brightness_residual = (observed.brightness - brightness) * self.brightness_weight
+        return jnp.concatenate(
+            [fringe_residual.real.ravel(), fringe_residual.imag.ravel(), brightness_residual.ravel()]
+        )
+
+    def _prior_residuals(self, y, noise):
+        wrench, contact, _ = _unpack(y)
+        fz = wrench[2]
+        tilt = (
+            jnp.stack([fz * contact.y0 - wrench[3] * NMM_PER_NM, fz * contact.x0 + wrench[4] * NMM_PER_NM])
+            / _TILT_PRIOR_NMM
+        )
+        radius = (y[8] - _RADIUS_PRIOR[0]) / _RADIUS_PRIOR[1]
+        # Priors are in units of the data noise so their weight does not depend on it.
+        return jnp.concatenate([tilt, radius[None]]) * noise
+
+    def residuals(self, y, args):
+        """Whitened data residuals followed by the prior residuals (optimistix signature)."""
+        observed, noise = args
+        return jnp.concatenate([self._data_residuals(y, observed), self._prior_residuals(y, noise)])
+
+    def observe(self, frame: Float[Array, "h w"]) -> FringeFields:
+        """Demodulate a frame."""
+        return self.demodulator(frame)
+
+    def _noise_level(self, observed: FringeFields) -> Float[Array, ""]:
+        # Whitened residual RMS of the reference against itself is zero; use the residual
+        # of the zero-load model outside the contact as a robust noise estimate instead:
+        # the median absolute whitened residual, scaled to a Gaussian sigma.
+        r = self._data_residuals(initial_state(dtype=observed.brightness.dtype), observed)
+        return jnp.maximum(jnp.median(jnp.abs(r)) / 0.6745, 1e-9)
+
+    def initial_guess(self, observed: FringeFields) -> Float[Array, "10"]:
+        """A cold start from the brightness excess: its centroid places the contact, its
+        integral sets Fz through the model's glow per newton, and a centred pressure
+        gives Tx, Ty."""
+        excess = (observed.brightness - self.reference.brightness) * self.brightness_weight
+        positive = jnp.maximum(excess, 0.0)
+        x, y = self.demodulator.coarse_grid()
+        # Centroid of the excess in a window around its peak: the band-limited brightness
+        # rings, and a global centroid would be pulled to the image centre.
+        peak = jnp.argmax(positive)
+        window = jnp.exp(-0.5 * ((x - x.ravel()[peak]) ** 2 + (y - y.ravel()[peak]) ** 2) / 3.0**2)
+        local = positive * window
+        total = jnp.sum(local) + 1e-12
+        to_surface = (self.device.Z + self.device.a) / self.device.Z
+        x0 = jnp.sum(local * x) / total * to_surface
+        y0 = jnp.sum(local * y) / total * to_surface
+        fz = jnp.clip(jnp.sum(excess) / self.glow_per_newton, 0.0, 3.0)
+        y_init = initial_state(dtype=excess.dtype)
+        scale = jnp.asarray(WRENCH_SCALE, excess.dtype)
+        return (
+            y_init.at[2]
+            .set(fz / scale[2])
+            .at[3]
+            .set(y0 * fz / NMM_PER_NM / scale[3])
+            .at[4]
+            .set(-x0 * fz / NMM_PER_NM / scale[4])
+            .at[6]
+            .set(x0)
+            .at[7]
+            .set(y0)
+        )
+
+    def solve(self, frame: Float[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
+        """Invert one frame. Pure and jit-able; see [`invert_frame`][] for the jitted entry point.
+
+        `init` warm-starts the solver (the previous frame's `Estimate.state`); `None` or a
+        non-finite `init` means a cold start from the brightness excess.
+        """
+        if frame.shape != (self.device.height, self.device.width):
+            raise ValueError(f"frame has shape {frame.shape}, device expects {(self.device.height, self.device.width)}")
+        dtype = self.device.p1.dtype
+        frame = frame.astype(dtype)
+        finite = jnp.all(jnp.isfinite(frame))
+        clean = jnp.where(finite, frame, 0.0)
+        observed = self.observe(clean)
+        cold = self.initial_guess(observed)
+        noise = self._noise_level(observed)
+        if init is None:
+            y0 = cold
+        else:
+            # Warm start when it explains the frame better than the cold guess does: true
+            # for a camera stream, false after a jump to an unrelated load.
+            def cost(y):
+                return jnp.sum(self.residuals(y, (observed, noise)) ** 2)
+
+            usable = jnp.all(jnp.isfinite(init))
+            warm = jnp.where(usable, init, cold)
+            y0 = jnp.where(usable & (cost(warm) < cost(cold)), warm, cold)
+        solver = optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol, linear_solver=lx.QR())
+        sol = optx.least_squares(
+            self.residuals, solver, y0, args=(observed, noise), max_steps=self.max_steps, throw=False
+        )
+        y = sol.value
+        r = self.residuals(y, (observed, noise))
+        r_data = r[:-3]
+        J = jax.jacfwd(self.residuals)(y, (observed, noise))
+        J_data = J[:-3]
+        inverse = jnp.linalg.pinv(J.T @ J, hermitian=True)
+        # Sandwich covariance for correlated noise: the estimate moves by A e for a data
+        # noise e, A = (J^T J)^-1 J_data^T; E[e e^T] comes from the stored unit-noise draws.
+        # The pixel variance is what makes the residual's expected size match its actual one.
+        moved = inverse @ (J_data.T @ self.noise_residuals.T)  # (unknowns, samples)
+        samples = self.noise_residuals.shape[0]
+        unit_cov = moved @ moved.T / samples
+        explained = J_data @ moved
+        unit_rss = (jnp.sum(self.noise_residuals**2) - jnp.sum(explained**2)) / samples
+        variance = jnp.sum(r_data**2) / jnp.maximum(unit_rss, 1e-30)
+        cov_y = unit_cov * variance
+        scale = jnp.asarray(WRENCH_SCALE, dtype)
+        covariance = cov_y[:6, :6] * scale[:, None] * scale[None, :]
+        wrench, contact, exposure = _unpack(y)
+        # Contact test: does the fit explain significantly more than zero load?
+        r_zero = self._data_residuals(initial_state(dtype=dtype), observed)
+        # Noise alone would make the fit explain `explained_noise` of the zero-load residual.
+        explained_noise = variance * jnp.sum(explained**2) / samples
+        f_stat = (jnp.sum(r_zero**2) - jnp.sum(r_data**2)) / jnp.maximum(explained_noise, 1e-30)
+        in_contact = f_stat > self.contact_threshold
+        status = _status(sol.result, finite, frame, observed, self.reference, in_contact, y)
+        ok = (status == Status.CONVERGED) | (status == Status.MAX_STEPS)
+        nan6 = jnp.full(6, jnp.nan, dtype)
+        wrench = jnp.where(ok, wrench, jnp.where(status == Status.NO_CONTACT, jnp.zeros(6, dtype), nan6))
+        covariance = jnp.where(ok | (status == Status.NO_CONTACT), covariance, jnp.full((6, 6), jnp.nan, dtype))
+        sigma = jnp.sqrt(jnp.clip(jnp.diagonal(covariance), 0.0, None))
+        return Estimate(
+            wrench=wrench,
+            covariance=covariance,
+            sigma=sigma,
+            contact=contact,
+            exposure=exposure,
+            status=status,
+            steps=sol.stats["num_steps"],
+            rms=jnp.sqrt(variance),
+            state=jnp.where(ok, y, y0),
+        )
+
+
+def _status(result, finite, frame, observed, reference, in_contact, y):
+    dark = jnp.max(frame) < 0.02
+    saturated = jnp.mean(frame >= 0.995) > 0.5
+    contrast = jnp.mean(jnp.abs(observed.fringe)) / jnp.maximum(jnp.mean(jnp.abs(reference.fringe)), 1e-12)
+    no_fringes = contrast < 0.2
+    solution_finite = jnp.all(jnp.isfinite(y))
+    status = jnp.where(result == optx.RESULTS.successful, Status.CONVERGED, Status.MAX_STEPS)
+    status = jnp.where(in_contact, status, Status.NO_CONTACT)
+    status = jnp.where(dark | saturated | no_fringes, Status.BAD_FRAME, status)
+    status = jnp.where(finite & solution_finite, status, Status.NONFINITE)
+    return status.astype(jnp.int32)
+
+
+@eqx.filter_jit
+def invert_frame(inverter: Inverter, frame: Float[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
+    """Invert one frame, warm-started from `init` (the previous frame's `Estimate.state`)."""
+    return inverter.solve(frame, init)
+
+
+@eqx.filter_jit
+def invert_batch(
+    inverter: Inverter, frames: Float[Array, "b h w"], init: Float[Array, "b 10"] | None = None
+) -> Estimate:
+    """Invert a batch of frames independently (vmapped)."""
+    if init is None:
+        return jax.vmap(lambda f: inverter.solve(f, None))(frames)
+    return jax.vmap(inverter.solve)(frames, init)

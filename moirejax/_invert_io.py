@@ -1,0 +1,221 @@
+"""Inverting recordings: datasets, videos and folders of frames into a wrench CSV."""
+
+import csv
+import io
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from ._fileio import atomic_write_text, DataError
+from ._inversion import Estimate, invert_batch, invert_frame, Inverter, Status
+
+
+WRENCH_COLUMNS = ("fx", "fy", "fz", "tx", "ty", "tz")
+CSV_HEADER = (
+    "frame",
+    *WRENCH_COLUMNS,
+    *(f"sigma_{c}" for c in WRENCH_COLUMNS),
+    "x0",
+    "y0",
+    "radius",
+    "status",
+    "message",
+)
+
+
+def iter_source_frames(
+    source: str | Path, shape: tuple[int, int]
+) -> Iterator[tuple[str, np.ndarray | None, str | None]]:
+    """Yield `(name, frame or None, error or None)` from a dataset, a video file or a folder of images.
+
+    A frame that cannot be read, or has the wrong size, comes back as `None` with a
+    message; the iteration goes on.
+    """
+    import cv2
+
+    from ._dataset import Dataset
+
+    path = Path(source)
+    if (path / "manifest.json").exists():
+        dataset = Dataset(path)
+        for i, frame, error in dataset.iter_frames(on_error="status"):
+            yield dataset.frame_names[i], frame, error
+        return
+    if path.is_dir():
+        names = sorted(
+            p for p in path.iterdir() if p.suffix.lower() in {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
+        )
+        if not names:
+            raise DataError(f"{path}: no image files")
+        for p in names:
+            image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                yield p.name, None, f"{p.name}: unreadable image"
+                continue
+            yield p.name, _to_gray(image), None
+        return
+    if not path.exists():
+        raise DataError(f"{path}: no such dataset, folder or video")
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise DataError(f"{path}: cannot open as a video")
+    index = 0
+    try:
+        while True:
+            ok, image = capture.read()
+            if not ok:
+                break
+            yield f"{index:06d}", _to_gray(image), None
+            index += 1
+    finally:
+        capture.release()
+
+
+def _to_gray(image: np.ndarray) -> np.ndarray:
+    import cv2
+
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    scale = 65535.0 if image.dtype == np.uint16 else 255.0
+    return image.astype(np.float32) / scale
+
+
+def find_reference(source: str | Path, shape: tuple[int, int]) -> tuple[np.ndarray | None, str]:
+    """A no-contact reference frame for `source`: the mean of up to 8 frames flagged
+    `contact = 0` in a dataset. Returns `(frame or None, description)`."""
+    from ._dataset import Dataset
+
+    path = Path(source)
+    if not (path / "manifest.json").exists():
+        return None, "no reference: none given and the source is not a dataset with contact flags"
+    dataset = Dataset(path)
+    if dataset.contact is None:
+        return None, f"no reference: {path} has no contact column"
+    free = np.flatnonzero(~dataset.contact)[:8]
+    if len(free) == 0:
+        return None, f"no reference: {path} has no contact-free frame"
+    frames = [dataset.frame(int(i)) for i in free]
+    if frames[0].shape != shape:
+        return None, "no reference: frame size differs from the device"
+    return np.mean(frames, axis=0), f"reference: mean of {len(frames)} contact-free frames of {path}"
+
+
+def load_reference_image(path: str | Path) -> np.ndarray:
+    """Read a reference (no-contact) frame from an image file."""
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DataError(f"{path}: cannot read the reference image")
+    return _to_gray(image)
+
+
+def _rows(names: list[str], estimate: Estimate, messages: list[str | None]) -> list[list]:
+    wrench = np.asarray(estimate.wrench)
+    sigma = np.asarray(estimate.sigma)
+    status = np.asarray(estimate.status)
+    x0, y0, radius = (np.asarray(v) for v in (estimate.contact.x0, estimate.contact.y0, estimate.contact.radius))
+    rows = []
+    for i, name in enumerate(names):
+        code = Status(int(status[i]))
+        message = messages[i] or code.message
+        rows.append([name, *wrench[i], *sigma[i], x0[i], y0[i], radius[i], code.name.lower(), message])
+    return rows
+
+
+def _failed_row(name: str, code: Status, message: str) -> list:
+    nan = float("nan")
+    return [name, *([nan] * 12), nan, nan, nan, code.name.lower(), message]
+
+
+def invert_recording(
+    inverter: Inverter,
+    source: str | Path,
+    out_csv: str | Path,
+    *,
+    batch: int = 1,
+    progress: bool = True,
+) -> dict[str, int]:
+    """Invert every frame of `source` and write `out_csv` (atomically, at the end).
+
+    Frames are inverted one at a time, each warm-started from the last good one, or in
+    independent batches of `batch` frames (higher throughput, cold starts). Bad frames
+    give status rows, never an exception. Returns the count of each status.
+    """
+    from tqdm.auto import tqdm
+
+    shape = (inverter.device.height, inverter.device.width)
+    rows: list[list] = []
+    counts: dict[str, int] = {}
+    # NaN state = cold start; one array type so the solve compiles once.
+    cold = np.full(10, np.nan, dtype=np.asarray(inverter.device.p1).dtype)
+    state = cold
+    pending: list[tuple[str, np.ndarray]] = []
+
+    def flush():
+        if not pending:
+            return
+        frames = np.stack([f for _, f in pending])
+        # Pad a short last batch so the compiled batch shape never changes.
+        padded = np.concatenate([frames, np.repeat(frames[-1:], batch - len(frames), axis=0)]) if batch > 1 else frames
+        estimate = invert_batch(inverter, padded)
+        n = len(pending)
+        estimate_n = _take(estimate, n)
+        rows.extend(_rows([name for name, _ in pending], estimate_n, [None] * n))
+        pending.clear()
+
+    for name, frame, error in tqdm(
+        iter_source_frames(source, shape), desc="invert", unit="frame", disable=not progress
+    ):
+        if frame is None:
+            flush()
+            rows.append(_failed_row(name, Status.UNREADABLE, error or "unreadable"))
+            continue
+        if frame.shape != shape:
+            flush()
+            rows.append(
+                _failed_row(
+                    name,
+                    Status.WRONG_SIZE,
+                    f"{name}: frame is {frame.shape[0]}x{frame.shape[1]}, device expects {shape[0]}x{shape[1]}",
+                )
+            )
+            continue
+        if batch > 1:
+            pending.append((name, frame))
+            if len(pending) == batch:
+                flush()
+            continue
+        estimate = invert_frame(inverter, frame, state)
+        # Warm-start only from a frame in contact: a no-contact state is a poor guess.
+        state = estimate.state if int(estimate.status) in (Status.CONVERGED, Status.MAX_STEPS) else cold
+        rows.extend(_rows([name], _expand(estimate), [None]))
+    flush()
+    for row in rows:
+        counts[row[-2]] = counts.get(row[-2], 0) + 1
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(CSV_HEADER)
+    for row in rows:
+        writer.writerow([row[0], *(_fmt(v) for v in row[1:-2]), row[-2], row[-1]])
+    atomic_write_text(out_csv, buffer.getvalue())
+    return counts
+
+
+def _fmt(value) -> str:
+    value = float(value)
+    return "nan" if math.isnan(value) else f"{value:.9g}"
+
+
+def _expand(estimate: Estimate) -> Estimate:
+    import jax
+
+    return jax.tree_util.tree_map(lambda x: np.asarray(x)[None], estimate)
+
+
+def _take(estimate: Estimate, n: int) -> Estimate:
+    import jax
+
+    return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], estimate)

@@ -1,0 +1,94 @@
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import moirejax as mj
+from moirejax._contact import Contact
+from moirejax._inversion import invert_batch, invert_frame, Inverter, Status, WRENCH_SCALE
+from moirejax._render import render_frame
+from moirejax._simulate import load_schedule
+
+
+@pytest.fixture(scope="module")
+def mid():
+    return mj.preset("mid")
+
+
+@pytest.fixture(scope="module")
+def inverter(mid):
+    return Inverter(mid, reference=render_frame(mid, jnp.zeros(6), Contact()))
+
+
+def test_noise_free_model_frames_invert_to_the_true_wrench(mid, inverter):
+    schedule = load_schedule("mixed", 6, seed=11)
+    for i in range(len(schedule)):
+        frame = render_frame(mid, jnp.asarray(schedule.wrench[i]), schedule.contact_at(i))
+        estimate = invert_frame(inverter, frame)
+        assert Status(int(estimate.status)) in (Status.CONVERGED, Status.MAX_STEPS)
+        scaled_error = (np.asarray(estimate.wrench) - schedule.wrench[i]) / WRENCH_SCALE
+        # A few percent of each axis' range: the mechanics grid of the inversion is
+        # coarser than the renderer's.
+        assert np.all(np.abs(scaled_error) < 0.05), scaled_error
+        centre_error = np.hypot(
+            float(estimate.contact.x0) - schedule.x0[i], float(estimate.contact.y0) - schedule.y0[i]
+        )
+        assert centre_error < 0.2
+        assert np.all(np.asarray(estimate.sigma) > 0)
+
+
+def test_no_recompilation_per_frame(mid, inverter):
+    frames = [
+        render_frame(mid, jnp.array([0.0, 0.0, fz, 0.0, 0.0, 0.0]), Contact(0.0, 0.0, 3.5)) for fz in (0.4, 0.8, 1.1)
+    ]
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def solve(inverter, frame, state):
+        return inverter.solve(frame, state)
+
+    state = None
+    estimate = solve(inverter, frames[0], jnp.zeros(10))
+    for frame in frames[1:]:
+        estimate = solve(inverter, frame, estimate.state)
+    assert float(estimate.wrench[2]) == pytest.approx(1.1, abs=0.05)
+    del state
+
+
+def test_no_contact_frame_gives_zero_wrench(mid, inverter):
+    frame = render_frame(mid, jnp.zeros(6), Contact())
+    estimate = invert_frame(inverter, frame)
+    assert Status(int(estimate.status)) == Status.NO_CONTACT
+    assert np.all(np.asarray(estimate.wrench) == 0)
+
+
+@pytest.mark.parametrize(
+    "make, status",
+    [
+        (lambda f: jnp.zeros_like(f), Status.BAD_FRAME),
+        (lambda f: jnp.ones_like(f), Status.BAD_FRAME),
+        (lambda f: f.at[100, 100].set(jnp.nan), Status.NONFINITE),
+        (lambda f: jnp.full_like(f, 0.4), Status.BAD_FRAME),
+    ],
+    ids=["black", "saturated", "nan", "no-fringes"],
+)
+def test_bad_frames_give_status_not_wrench(mid, inverter, make, status):
+    frame = make(render_frame(mid, jnp.array([0.0, 0, 0.8, 0, 0, 0]), Contact()))
+    estimate = invert_frame(inverter, frame)
+    assert Status(int(estimate.status)) == status
+    assert np.all(np.isnan(np.asarray(estimate.wrench)))
+    assert status.message
+
+
+def test_wrong_size_is_a_clear_error(inverter):
+    with pytest.raises((ValueError, TypeError), match="shape|dimension"):
+        invert_frame(inverter, jnp.zeros((100, 100)))
+
+
+def test_batch_matches_single(mid, inverter):
+    frames = jnp.stack(
+        [render_frame(mid, jnp.array([0.1, 0.0, fz, 0.0, 0.0, 0.0]), Contact(0.0, 0.0, 3.5)) for fz in (0.5, 0.9)]
+    )
+    batch = invert_batch(inverter, frames)
+    single = invert_frame(inverter, frames[1])
+    np.testing.assert_allclose(np.asarray(batch.wrench[1]), np.asarray(single.wrench), rtol=1e-3, atol=1e-4)
