@@ -41,6 +41,7 @@ from ._band_model import complex_ratio, predicted_bands
 from ._contact import Contact, NMM_PER_NM
 from ._device import Device
 from ._observables import Demodulator, FringeFields
+from ._reference import match_reference_geometry
 
 
 # Scale of each wrench axis in the solver: the paper's calibrated ranges (N, N*m).
@@ -119,8 +120,11 @@ class Inverter(eqx.Module):
     **Arguments:**
 
     - `device`: the (nominal or calibrated) [`Device`][] the model uses.
-    - `reference`: a no-contact frame of this unit, or `None` to take the model's own
-      prediction (then fixed-pattern deviations of the unit are not removed).
+    - `reference`: a no-contact frame of this unit (the mean of a few is better), or
+      `None` to take the model's own prediction (then fixed-pattern deviations of the
+      unit are not removed).
+    - `match_reference`: set the upper grating's pitch and angle so that the model's moiré
+      wavevectors match those measured on `reference` ([`match_reference_geometry`][]).
     - `crop_shape`: coarse demodulation grid.
     - `model_shape`: grid of the mechanics and the predicted fringe field.
     - `band_fraction`: band radius over |K| of the demodulator.
@@ -155,7 +159,16 @@ class Inverter(eqx.Module):
         rtol: float = 1e-5,
         atol: float = 1e-5,
         contact_threshold: float = 8.0,
+        match_reference: bool = True,
     ):
+        if reference is not None:
+            reference = np.asarray(reference, dtype=np.asarray(device.p1).dtype)
+            if reference.shape != (device.height, device.width):
+                raise ValueError(
+                    f"reference frame has shape {reference.shape}, device expects {(device.height, device.width)}"
+                )
+            if match_reference:
+                device = match_reference_geometry(device, reference)
         self.device = device
         self.model_shape = model_shape
         self.max_steps = max_steps
