@@ -125,13 +125,55 @@ def _inverter_for(device, source, reference_path):
 
 
 def _cmd_invert(args: argparse.Namespace) -> int:
-    from ._device import load_device
     from ._invert_io import invert_recording
+    from ._workflows import load_calibrated
 
-    device = load_device(args.device)
+    device, head = load_calibrated(args.device)
     inverter = _inverter_for(device, args.data, args.reference)
-    counts = invert_recording(inverter, args.data, args.out, batch=args.batch, progress=not args.quiet)
+    counts = invert_recording(inverter, args.data, args.out, batch=args.batch, progress=not args.quiet, head=head)
     print(f"wrote {args.out}: " + ", ".join(f"{n} {status}" for status, n in sorted(counts.items())))
+    return 0
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from ._calibration import Recipe
+    from ._metrics import format_metrics
+    from ._workflows import calibrate
+
+    summary = calibrate(
+        args.device,
+        args.data,
+        args.out,
+        max_frames=args.max_frames,
+        recipe=Recipe(rounds=args.rounds),
+        progress=not args.quiet,
+    )
+    print(format_metrics(summary["physics_only"], title="physics only (calibration frames)"))
+    print(format_metrics(summary["metrics"], title="with residual head (calibration frames)"))
+    print("fitted parameters:")
+    for p in summary["parameters"]:
+        true = f"  true {p['true']:.5g}" if "true" in p else ""
+        print(f"  {p['parameter']:20s} {p['nominal']:.5g} -> {p['fitted']:.5g} +- {p['sd']:.2g}{true}")
+    print(f"ridge baseline held-out R2 by training frames: {summary['baselines']}")
+    print(f"wrote {args.out} and {summary['report']}/")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from ._metrics import format_metrics
+    from ._workflows import evaluate
+
+    metrics = evaluate(args.device, args.data, args.out, progress=not args.quiet)
+    print(format_metrics(metrics, title=f"{args.device} on {args.data}"))
+    print(f"wrote {args.out}/metrics.json, parity.png, residuals.png")
+    return 0
+
+
+def _cmd_transfer(args: argparse.Namespace) -> int:
+    from ._workflows import transfer
+
+    summary = transfer(args.from_, args.data, args.out, max_frames=args.max_frames, progress=not args.quiet)
+    print(f"refitted {len(summary['uncertainty'])} parameters on {summary['frames']} frames; wrote {args.out}")
     return 0
 
 
@@ -183,6 +225,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=1, help="invert N frames at once (throughput; no warm start)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(run=_cmd_invert)
+
+    p = sub.add_parser("calibrate", help="fit a unit's physical parameters and residual head to a dataset")
+    p.add_argument("--device", metavar="NOMINAL", help="nominal device JSON (default: the dataset's)")
+    p.add_argument("--data", required=True, metavar="DATASET")
+    p.add_argument("--out", required=True, metavar="FIT.json", help="fitted device; head and report go beside it")
+    p.add_argument("--max-frames", type=int, default=500)
+    p.add_argument("--rounds", type=int, default=3, help="alternations of parameter and latent solves")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(run=_cmd_calibrate)
+
+    p = sub.add_parser("evaluate", help="accuracy of a device on a dataset: metrics.json and plots")
+    p.add_argument("--device", required=True, metavar="FIT.json")
+    p.add_argument("--data", required=True, metavar="DATASET")
+    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(run=_cmd_evaluate)
+
+    p = sub.add_parser("transfer", help="move a calibration to a new unit with a handful of frames")
+    p.add_argument("--from", dest="from_", required=True, metavar="FIT.json")
+    p.add_argument("--data", required=True, metavar="DATASET", help="frames of the new unit")
+    p.add_argument("--out", required=True, metavar="FIT_B.json")
+    p.add_argument("--max-frames", type=int, default=20)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(run=_cmd_transfer)
 
     p = sub.add_parser("demo", help="the whole product on an embedded default, no hardware needed")
     p.add_argument("--out", default="moirejax-demo", help="output folder (default: moirejax-demo)")

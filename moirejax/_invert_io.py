@@ -112,8 +112,14 @@ def load_reference_image(path: str | Path) -> np.ndarray:
     return _to_gray(image)
 
 
-def _rows(names: list[str], estimate: Estimate, messages: list[str | None]) -> list[list]:
+def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head=None) -> list[list]:
     wrench = np.asarray(estimate.wrench)
+    if head is not None:
+        ok = np.all(np.isfinite(wrench), axis=1) & (np.asarray(estimate.status) != Status.NO_CONTACT)
+        if np.any(ok):
+            wrench = wrench.copy()
+            c = estimate.contact
+            wrench[ok] = head.correct(wrench[ok], np.asarray(c.x0)[ok], np.asarray(c.y0)[ok], np.asarray(c.radius)[ok])
     sigma = np.asarray(estimate.sigma)
     status = np.asarray(estimate.status)
     x0, y0, radius = (np.asarray(v) for v in (estimate.contact.x0, estimate.contact.y0, estimate.contact.radius))
@@ -137,6 +143,7 @@ def invert_recording(
     *,
     batch: int = 1,
     progress: bool = True,
+    head=None,
 ) -> dict[str, int]:
     """Invert every frame of `source` and write `out_csv` (atomically, at the end).
 
@@ -163,7 +170,7 @@ def invert_recording(
         estimate = invert_batch(inverter, padded)
         n = len(pending)
         estimate_n = _take(estimate, n)
-        rows.extend(_rows([name for name, _ in pending], estimate_n, [None] * n))
+        rows.extend(_rows([name for name, _ in pending], estimate_n, [None] * n, head))
         pending.clear()
 
     for name, frame, error in tqdm(
@@ -191,7 +198,7 @@ def invert_recording(
         estimate = invert_frame(inverter, frame, state)
         # Warm-start only from a frame in contact: a no-contact state is a poor guess.
         state = estimate.state if int(estimate.status) in (Status.CONVERGED, Status.MAX_STEPS) else cold
-        rows.extend(_rows([name], _expand(estimate), [None]))
+        rows.extend(_rows([name], _expand(estimate), [None], head))
     flush()
     for row in rows:
         counts[row[-2]] = counts.get(row[-2], 0) + 1

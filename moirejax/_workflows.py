@@ -1,0 +1,313 @@
+"""The calibrate, evaluate and transfer jobs, from dataset folders to files and plots.
+
+Every output is written atomically and only at the end, so an interrupted job (Ctrl-C)
+leaves no half-written device file.
+"""
+
+import json
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._calibration import fit_physical_parameters, Recipe, TRANSFER_RECIPE
+from ._dataset import Dataset
+from ._device import Device, device_from_json, load_device, save_device
+from ._fileio import atomic_write_text, DataError, read_json
+from ._inversion import invert_frame, Inverter, Status
+from ._metrics import plot_parity, plot_residuals, wrench_metrics
+from ._residual_head import head_features, load_head, ResidualHead, save_head, train_residual_head
+
+
+def dataset_reference(dataset: Dataset, limit: int = 16) -> np.ndarray:
+    """Mean of up to `limit` contact-free frames: the unit's no-contact reference."""
+    if dataset.contact is None or not np.any(~dataset.contact):
+        raise DataError(f"{dataset.path}: no contact-free frame (column 'contact' = 0) to use as the reference")
+    free = np.flatnonzero(~dataset.contact)[:limit]
+    return np.mean([dataset.frame(int(i)) for i in free], axis=0)
+
+
+def invert_frames(inverter: Inverter, frames, *, progress: bool = True, desc: str = "invert") -> dict[str, np.ndarray]:
+    """Invert frames one by one (cold starts); arrays of wrench, sigma, contact, status."""
+    from tqdm.auto import tqdm
+
+    cold = jnp.full(10, jnp.nan, dtype=inverter.device.p1.dtype)
+    out: dict[str, list] = {k: [] for k in ("wrench", "sigma", "x0", "y0", "radius", "status")}
+    for frame in tqdm(frames, desc=desc, unit="frame", disable=not progress):
+        estimate = invert_frame(inverter, jnp.asarray(frame), cold)
+        out["wrench"].append(np.asarray(estimate.wrench))
+        out["sigma"].append(np.asarray(estimate.sigma))
+        out["x0"].append(float(estimate.contact.x0))
+        out["y0"].append(float(estimate.contact.y0))
+        out["radius"].append(float(estimate.contact.radius))
+        out["status"].append(int(estimate.status))
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _head_path(device_path: Path) -> Path:
+    return device_path.with_suffix(".head.eqx")
+
+
+def load_calibrated(device_path: str | Path) -> tuple[Device, ResidualHead | None]:
+    """A device file and, when its calibration names one, its residual head."""
+    device_path = Path(device_path)
+    obj = read_json(device_path, "device")
+    device = device_from_json(obj, source=str(device_path))
+    head_name = obj.get("calibration", {}).get("residual_head")
+    head = load_head(device_path.parent / head_name) if head_name else None
+    return device, head
+
+
+def _apply_head(head: ResidualHead | None, result: dict[str, np.ndarray]) -> np.ndarray:
+    wrench = result["wrench"].copy()
+    if head is None:
+        return wrench
+    ok = np.all(np.isfinite(wrench), axis=1) & (result["status"] != Status.NO_CONTACT)
+    if np.any(ok):
+        wrench[ok] = head.correct(wrench[ok], result["x0"][ok], result["y0"][ok], result["radius"][ok])
+    return wrench
+
+
+def fit_tilt_matrix(x0: np.ndarray, y0: np.ndarray, moments: np.ndarray, device) -> tuple[np.ndarray, float]:
+    """The paper's Eq. 9, `[Tx, Ty] ~ M (c - c0)`, by least squares; returns M and its R².
+
+    `c` is the contact centre in the image (mm). The physics says the moments are the
+    centre times Fz, so a constant M only holds at a fixed preload; the R² shows how well.
+    """
+    scale = float(device.Z / (device.Z + device.a))
+    c = np.stack([x0, y0], axis=1) * scale
+    design = np.concatenate([c, np.ones((len(c), 1))], axis=1)
+    coef, *_ = np.linalg.lstsq(design, moments, rcond=None)
+    residual = moments - design @ coef
+    r2 = 1 - np.sum(residual**2) / max(np.sum((moments - moments.mean(0)) ** 2), 1e-30)
+    return coef[:2].T, float(r2)
+
+
+def ridge_baseline(train_frames, train_wrench, test_frames, reference, *, size: int = 24) -> np.ndarray:
+    """A learned baseline: ridge regression from downsampled `frame - reference` to the wrench.
+
+    The regularisation is chosen by leave-one-out (closed form for ridge).
+    """
+    import cv2
+
+    def features(frames):
+        return np.stack(
+            [
+                cv2.resize(np.asarray(f, np.float32) - reference, (size, size), interpolation=cv2.INTER_AREA).ravel()
+                for f in frames
+            ]
+        )
+
+    X = features(train_frames)
+    mean_x, mean_y = X.mean(0), train_wrench.mean(0)
+    Xc, Yc = X - mean_x, train_wrench - mean_y
+    U, s, Vt = np.linalg.svd(Xc, full_matrices=False)
+    best = None
+    for lam in 10.0 ** np.arange(-6, 3):
+        d = s**2 / (s**2 + lam)
+        hat_diag = np.sum(U**2 * d, axis=1)
+        fitted = U @ (d[:, None] * (U.T @ Yc))
+        loo = np.mean(((Yc - fitted) / np.maximum(1 - hat_diag, 1e-6)[:, None]) ** 2)
+        if best is None or loo < best[0]:
+            best = (loo, lam)
+    lam = best[1]
+    coef = Vt.T @ ((s / (s**2 + lam))[:, None] * (U.T @ Yc))
+    return (features(test_frames) - mean_x) @ coef + mean_y
+
+
+def _select(dataset: Dataset, max_frames: int | None, seed: int = 0) -> np.ndarray:
+    idx = np.flatnonzero(dataset.contact) if dataset.contact is not None else np.arange(len(dataset))
+    if max_frames is not None and len(idx) > max_frames:
+        idx = np.sort(np.random.default_rng(seed).choice(idx, size=max_frames, replace=False))
+    return idx
+
+
+def _parameter_table(nominal, fitted, uncertainty: dict, true_obj: dict | None) -> list[dict]:
+    from ._calibration import _getter
+
+    rows = []
+    true = device_from_json(true_obj) if true_obj else None
+    for name in uncertainty:
+        row = {
+            "parameter": name,
+            "nominal": float(_getter(name)(nominal)),
+            "fitted": float(_getter(name)(fitted)),
+            "sd": uncertainty[name],
+        }
+        if true is not None:
+            row["true"] = float(_getter(name)(true))
+        rows.append(row)
+    return rows
+
+
+def _write_report(
+    out_dir: Path, metrics: dict, true, estimate, sigma, *, title: str, extra: dict | None = None
+) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out_dir / "metrics.json", json.dumps({**metrics, **(extra or {})}, indent=2) + "\n")
+    plot_parity(out_dir / "parity.png", true, estimate, sigma, title=title)
+    plot_residuals(out_dir / "residuals.png", true, estimate, title=title)
+
+
+def calibrate(
+    nominal_path: str | Path,
+    data: str | Path,
+    out: str | Path,
+    *,
+    max_frames: int | None = 500,
+    recipe: Recipe = Recipe(),
+    baseline_sizes: tuple[int, ...] = (20, 100, 500),
+    progress: bool = True,
+) -> dict:
+    """`moirejax calibrate`: fit a unit, train its residual head, write device, head and report."""
+    out = Path(out)
+    dataset = Dataset(data)
+    nominal = load_device(nominal_path) if nominal_path else device_from_json(dataset.device)
+    reference = dataset_reference(dataset)
+    idx = _select(dataset, max_frames)
+    if len(idx) < 10:
+        raise DataError(f"{data}: only {len(idx)} frames in contact; calibration needs at least 10")
+    frames = np.stack([dataset.frame(int(i)) for i in idx])
+    wrenches = dataset.wrenches[idx]
+    result = fit_physical_parameters(nominal, reference, frames, wrenches, recipe, progress=progress)
+    inverter = Inverter(result.device, reference=reference, match_reference=False)
+    physical = invert_frames(inverter, frames, progress=progress, desc="invert calibration frames")
+    ok = np.all(np.isfinite(physical["wrench"]), axis=1) & (physical["status"] != Status.NO_CONTACT)
+    features = head_features(physical["wrench"][ok], physical["x0"][ok], physical["y0"][ok], physical["radius"][ok])
+    from ._inversion import WRENCH_SCALE
+
+    head, head_record = train_residual_head(features, (wrenches[ok] - physical["wrench"][ok]) / WRENCH_SCALE)
+    corrected = _apply_head(head, physical)
+    tilt, tilt_r2 = fit_tilt_matrix(physical["x0"][ok], physical["y0"][ok], wrenches[ok][:, 3:5], result.device)
+    fitted_device = eqx_replace_tilt(result.device, tilt)
+    metrics_physics = wrench_metrics(wrenches, physical["wrench"], physical["sigma"])
+    metrics = wrench_metrics(wrenches, corrected, physical["sigma"])
+    baselines = {}
+    for size in baseline_sizes:
+        n_train = min(size, int(0.8 * len(idx)))
+        if n_train < 10:
+            continue
+        order = np.random.default_rng(1).permutation(len(idx))
+        train, test = order[:n_train], order[int(0.8 * len(idx)) :]
+        predicted = ridge_baseline(frames[train], wrenches[train], frames[test], reference)
+        baselines[str(n_train)] = wrench_metrics(wrenches[test], predicted)["r2"]
+    report_dir = out.with_suffix("")
+    report_dir = report_dir.parent / (report_dir.name + "_report")
+    parameters = _parameter_table(nominal, fitted_device, result.uncertainty, dataset.true_device)
+    _write_report(
+        report_dir,
+        metrics,
+        wrenches,
+        corrected,
+        physical["sigma"],
+        title=f"calibration fit ({len(idx)} frames, in-sample)",
+        extra={
+            "physics_only": metrics_physics,
+            "residual_head": head_record,
+            "parameters": parameters,
+            "tilt_matrix": tilt.tolist(),
+            "tilt_matrix_r2": tilt_r2,
+            "ridge_baseline_r2_heldout": baselines,
+            "history": result.history,
+            "recipe": recipe.to_json(),
+        },
+    )
+    _plot_parameters(report_dir / "parameters.png", parameters)
+    head_path = _head_path(out)
+    save_head(head_path, head)
+    calibration = {
+        "dataset": str(data),
+        "recipe": recipe.name,
+        "uncertainty": result.uncertainty,
+        "residual_head": head_path.name,
+        "metrics": {"r2": metrics["r2"], "mae": metrics["mae"]},
+    }
+    # The device file is written last: it is what marks a calibration as complete.
+    save_device(out, fitted_device, extra={"calibration": calibration})
+    return {
+        "metrics": metrics,
+        "physics_only": metrics_physics,
+        "parameters": parameters,
+        "baselines": baselines,
+        "report": str(report_dir),
+    }
+
+
+def eqx_replace_tilt(device, tilt: np.ndarray):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda d: d.tilt, device, jnp.asarray(tilt, dtype=device.p1.dtype))
+
+
+def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, progress: bool = True) -> dict:
+    """`moirejax evaluate`: invert a dataset with a (calibrated) device; metrics and plots."""
+    device, head = load_calibrated(device_path)
+    dataset = Dataset(data)
+    reference = dataset_reference(dataset)
+    idx = _select(dataset, None)
+    inverter = Inverter(device, reference=reference)
+    result = invert_frames(inverter, (dataset.frame(int(i)) for i in idx), progress=progress, desc="evaluate")
+    wrench = _apply_head(head, result)
+    truth = dataset.wrenches[idx]
+    metrics = wrench_metrics(truth, wrench, result["sigma"])
+    statuses = {Status(int(s)).name.lower(): int(np.sum(result["status"] == s)) for s in np.unique(result["status"])}
+    _write_report(
+        Path(out_dir),
+        metrics,
+        truth,
+        wrench,
+        result["sigma"],
+        title=f"evaluation on {Path(data).name}",
+        extra={"status_counts": statuses},
+    )
+    return metrics
+
+
+def transfer(
+    from_path: str | Path, data: str | Path, out: str | Path, *, max_frames: int = 20, progress: bool = True
+) -> dict:
+    """`moirejax transfer`: refit a new unit's physical parameters from a handful of frames,
+    keeping the first unit's residual head."""
+    from_path, out = Path(from_path), Path(out)
+    device, head = load_calibrated(from_path)
+    dataset = Dataset(data)
+    reference = dataset_reference(dataset)
+    idx = _select(dataset, max_frames)
+    frames = np.stack([dataset.frame(int(i)) for i in idx])
+    result = fit_physical_parameters(
+        device, reference, frames, dataset.wrenches[idx], TRANSFER_RECIPE, progress=progress
+    )
+    head_name = None
+    if head is not None:
+        head_path = _head_path(out)
+        save_head(head_path, head)
+        head_name = head_path.name
+    calibration = {
+        "dataset": str(data),
+        "recipe": TRANSFER_RECIPE.name,
+        "uncertainty": result.uncertainty,
+        "residual_head": head_name,
+    }
+    save_device(out, result.device, extra={"calibration": calibration})
+    return {"uncertainty": result.uncertainty, "frames": len(idx)}
+
+
+def _plot_parameters(path: Path, parameters: list[dict]) -> None:
+    from ._plotting import pyplot, save_figure
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(9, 0.5 + 0.45 * len(parameters)))
+    names = [p["parameter"] for p in parameters]
+    rel = [(p["fitted"] - p["nominal"]) / (abs(p["nominal"]) if p["nominal"] else 1.0) * 100 for p in parameters]
+    err = [p["sd"] / (abs(p["nominal"]) if p["nominal"] else 1.0) * 100 * 1.96 for p in parameters]
+    y = np.arange(len(names))
+    ax.errorbar(rel, y, xerr=err, fmt="o", label="fitted (95%)")
+    if all("true" in p for p in parameters):
+        true = [(p["true"] - p["nominal"]) / (abs(p["nominal"]) if p["nominal"] else 1.0) * 100 for p in parameters]
+        ax.plot(true, y, "rx", label="true unit")
+    ax.axvline(0, color="k", lw=0.8)
+    ax.set_yticks(y, names)
+    ax.set_xlabel("deviation from nominal (% of nominal; absolute x100 for zero-nominal angles)")
+    ax.legend()
+    fig.tight_layout()
+    save_figure(fig, path)
