@@ -2,6 +2,16 @@
 
 import importlib.metadata
 
+from ._band_model import predicted_bands as predicted_bands
+from ._calibration import fit_physical_parameters as fit_physical_parameters, Recipe as Recipe
+from ._contact import Contact as Contact, surface_grid as surface_grid, surface_tractions as surface_tractions
+from ._dataset import (
+    Dataset as Dataset,
+    DatasetWriter as DatasetWriter,
+    export_recording as export_recording,
+    import_recording as import_recording,
+    open_dataset as open_dataset,
+)
 from ._design import design_table as design_table, plot_design_maps as plot_design_maps
 from ._device import (
     Device as Device,
@@ -12,6 +22,11 @@ from ._device import (
     Optics as Optics,
     preset as preset,
     save_device as save_device,
+)
+from ._elastomer import (
+    half_space_compliance as half_space_compliance,
+    layer_compliance as layer_compliance,
+    surface_displacement as surface_displacement,
 )
 from ._fileio import (
     atomic_write_bytes as atomic_write_bytes,
@@ -37,6 +52,40 @@ from ._geometry import (
     relative_mismatch as relative_mismatch,
     shear_amplification as shear_amplification,
 )
+from ._inversion import (
+    Estimate as Estimate,
+    invert_batch as invert_batch,
+    invert_frame as invert_frame,
+    Inverter as Inverter,
+    Status as Status,
+)
+from ._metrics import wrench_metrics as wrench_metrics
+from ._observability import (
+    cramer_rao as cramer_rao,
+    fisher_information as fisher_information,
+    force_sensitivity as force_sensitivity,
+    observability_table as observability_table,
+    optimise_design as optimise_design,
+)
+from ._observables import (
+    Demodulator as Demodulator,
+    frame_summary as frame_summary,
+    fringe_observables as fringe_observables,
+    FringeFields as FringeFields,
+)
+from ._reference import match_reference_geometry as match_reference_geometry
+from ._render import (
+    deformation as deformation,
+    HighFidelity as HighFidelity,
+    render_frame as render_frame,
+    render_frame_high as render_frame_high,
+)
+from ._simulate import (
+    load_schedule as load_schedule,
+    perturb_device as perturb_device,
+    simulate_dataset as simulate_dataset,
+)
+from ._workflows import calibrate as calibrate, evaluate as evaluate, transfer as transfer
 
 
 __version__ = importlib.metadata.version("moirejax")

@@ -70,6 +70,20 @@ def _cmd_design(args: argparse.Namespace) -> int:
 
     device = _device_from_args(args)
     table = design_table(device)
+    if args.sensitivity or args.observability or args.optimise:
+        from ._observability import force_sensitivity
+
+        table["force_sensitivity"] = force_sensitivity(device)
+    if args.observability or args.optimise:
+        from ._observability import observability_table
+
+        table["observability"] = observability_table(device)
+    if args.optimise:
+        from ._observability import optimise_design
+
+        optimum, report = optimise_design(device, min_pitch=args.min_pitch, steps=args.steps, progress=not args.json)
+        table["optimisation"] = report
+        device = optimum
     if args.json:
         print(json.dumps(table, indent=2))
     else:
@@ -80,6 +94,11 @@ def _cmd_design(args: argparse.Namespace) -> int:
     if args.plot:
         plot_design_maps(args.plot, device)
         print(f"wrote design maps {args.plot}", file=sys.stderr)
+    if args.observability_plot:
+        from ._observability import plot_observability
+
+        plot_observability(args.observability_plot, device)
+        print(f"wrote observability maps {args.observability_plot}", file=sys.stderr)
     return 0
 
 
@@ -177,6 +196,46 @@ def _cmd_transfer(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_live(args: argparse.Namespace) -> int:
+    from ._workflows import load_calibrated
+    from .live import format_summary, parse_sink, run_live
+
+    device, _ = load_calibrated(args.device)
+    sinks = [parse_sink(spec) for spec in (args.sink or ["-"])]
+    try:
+        summary = run_live(
+            device,
+            args.source,
+            sinks=sinks,
+            max_frames=args.max_frames,
+            record=args.record,
+            plot=args.plot,
+            rectification=args.rectification,
+            reference=args.reference,
+        )
+    finally:
+        for sink in sinks:
+            sink.close()
+    # The default sink writes the records to stdout; the summary goes to stderr.
+    print(format_summary(summary), file=sys.stderr)
+    return 0
+
+
+def _cmd_cap_removal(args: argparse.Namespace) -> int:
+    from ._workflows import load_calibrated
+    from .live import plot_timeline, run_cap_removal
+
+    device, _ = load_calibrated(args.device) if args.device else (None, None)
+    if device is None:
+        from ._device import preset
+
+        device = preset("mid")
+    timeline = run_cap_removal(device, cycles=args.cycles)
+    plot_timeline(args.out, timeline)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from ._demo import run_demo
 
@@ -196,6 +255,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.add_argument("--write", metavar="FILE", help="write the device JSON")
     p.add_argument("--plot", metavar="FILE.png", help="draw design maps")
+    p.add_argument("--sensitivity", action="store_true", help="force sensitivities through the forward model")
+    p.add_argument("--observability", action="store_true", help="per-axis Cramer-Rao bounds at a nominal load")
+    p.add_argument("--observability-plot", metavar="FILE.png", help="per-axis bounds over p1 x p2 and angle")
+    p.add_argument(
+        "--optimise", action="store_true", help="minimise the worst-axis relative bound (--write saves the optimum)"
+    )
+    p.add_argument("--steps", type=int, default=150, help="optimiser steps")
+    p.add_argument("--min-pitch", type=float, default=0.15, help="smallest pitch the laser can cut, mm")
     p.set_defaults(run=_cmd_design)
 
     p = sub.add_parser("simulate", help="render a dataset of a simulated unit under a load protocol")
@@ -249,6 +316,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frames", type=int, default=20)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(run=_cmd_transfer)
+
+    p = sub.add_parser("live", help="stream wrenches from a camera, video or the simulated sensor")
+    p.add_argument("--device", required=True, metavar="FIT.json")
+    p.add_argument("--source", default="sim", help="sim, a camera index, a video file or URL, or a folder of frames")
+    p.add_argument(
+        "--sink",
+        action="append",
+        metavar="SPEC",
+        help="- (stdout, default), a file path, or udp://host:port; repeatable",
+    )
+    p.add_argument("--max-frames", type=int, help="stop after N frames")
+    p.add_argument("--record", metavar="OUT.mp4", help="write an annotated video")
+    p.add_argument("--plot", action="store_true", help="live strip chart when a display exists")
+    p.add_argument("--rectification", metavar="RECT.json", help="pixel-to-mm rectification of the camera")
+    p.add_argument("--reference", metavar="IMAGE", help="no-contact frame (default: the first frames of the source)")
+    p.set_defaults(run=_cmd_live)
+
+    p = sub.add_parser(
+        "cap-removal", help="the paper's cap-removal cycle against the simulated sensor, with a timeline plot"
+    )
+    p.add_argument("--device", metavar="FIT.json", help="device (default: the Mid preset)")
+    p.add_argument("--cycles", type=int, default=3)
+    p.add_argument("--out", default="cap_removal.png", metavar="FILE.png")
+    p.set_defaults(run=_cmd_cap_removal)
 
     p = sub.add_parser("demo", help="the whole product on an embedded default, no hardware needed")
     p.add_argument("--out", default="moirejax-demo", help="output folder (default: moirejax-demo)")

@@ -13,6 +13,13 @@ from ._camera import (
     SourceEvent as SourceEvent,
     VideoSource as VideoSource,
 )
+from ._controller import (
+    CapController as CapController,
+    CapRig as CapRig,
+    plot_timeline as plot_timeline,
+    run_cap_removal as run_cap_removal,
+    Timeline as Timeline,
+)
 from ._gate import GateDecision as GateDecision, GateER as GateER
 from ._pipeline import LiveSummary as LiveSummary, run_pipeline as run_pipeline
 from ._rectify import (
@@ -22,6 +29,20 @@ from ._rectify import (
     order_grid as order_grid,
     Rectification as Rectification,
     save_rectification as save_rectification,
+)
+from ._run import (
+    capture_reference as capture_reference,
+    format_summary as format_summary,
+    GATE_ON_THRESHOLD as GATE_ON_THRESHOLD,
+    make_colour_probe as make_colour_probe,
+    make_gate as make_gate,
+    make_tactile_processor as make_tactile_processor,
+    open_source as open_source,
+    parse_sink as parse_sink,
+    run_live as run_live,
+    schedule_script as schedule_script,
+    SimulatedSensor as SimulatedSensor,
+    TactileProcessor as TactileProcessor,
 )
 from ._sinks import (
     FileSink as FileSink,
