@@ -4,10 +4,14 @@ import io
 
 
 def pyplot():
-    """`matplotlib.pyplot` on the Agg backend (no display needed), imported on first use."""
+    """`matplotlib.pyplot`, on the Agg backend (no display needed) unless the caller, a
+    notebook say, already chose one."""
+    import sys
+
     import matplotlib
 
-    matplotlib.use("Agg")
+    if "matplotlib.pyplot" not in sys.modules:
+        matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     return plt

@@ -53,7 +53,7 @@ class ResidualHead(eqx.Module):
 
     def correct(self, wrench: np.ndarray, x0: np.ndarray, y0: np.ndarray, radius: np.ndarray) -> np.ndarray:
         """Corrected wrenches `(n, 6)` in N and N·m."""
-        features = jnp.asarray(head_features(wrench, x0, y0, radius), dtype=jnp.float32)
+        features = jnp.asarray(head_features(wrench, x0, y0, radius), dtype=float)
         return wrench + np.asarray(jax.vmap(self)(features)) * WRENCH_SCALE
 
 
@@ -73,8 +73,8 @@ def train_residual_head(
     order = rng.permutation(n)
     n_val = max(1, int(round(validation * n)))
     val, train = order[:n_val], order[n_val:]
-    x = jnp.asarray(features, dtype=jnp.float32)
-    y = jnp.asarray(targets, dtype=jnp.float32)
+    x = jnp.asarray(features, dtype=float)
+    y = jnp.asarray(targets, dtype=float)
     head = ResidualHead(jax.random.PRNGKey(seed))
     optimiser = optax.adamw(3e-3, weight_decay=1e-4)
     state = optimiser.init(eqx.filter(head, eqx.is_inexact_array))
