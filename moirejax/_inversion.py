@@ -194,6 +194,15 @@ class Inverter(eqx.Module):
                 )
             self.reference = self.demodulator(reference)
             self.model_reference = self._predict(zero, self.reference.reference_wavevector)
+            if match_reference:
+                # Register the gratings: the model's fringe phase at zero load must match
+                # the unit's, or the contact glow that leaks into the fringe band would be
+                # mis-phased against the moire term by the reference correction.
+                weight = self.demodulator.fringe_envelope.astype(self.reference.fringe.dtype)
+                product = self.reference.fringe * jnp.conj(self.model_reference.fringe) * weight
+                offset = jnp.angle(jnp.sum(product, axis=(1, 2)))
+                self.device = eqx.tree_at(lambda d: d.optics.phase1, self.device, self.device.optics.phase1 + offset)
+                self.model_reference = self._predict(zero, self.reference.reference_wavevector)
         # The demodulator divides by the apodization envelope, which amplifies noise near
         # the border; weighting by the envelope undoes that (and drops the border).
         self.fringe_weight = self.demodulator.fringe_envelope.astype(zero.dtype)

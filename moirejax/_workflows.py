@@ -149,8 +149,11 @@ def _write_report(
     plot_residuals(out_dir / "residuals.png", true, estimate, title=title)
 
 
+MIN_HEAD_FRAMES = 50
+
+
 def calibrate(
-    nominal_path: str | Path,
+    nominal_path: str | Path | None,
     data: str | Path,
     out: str | Path,
     *,
@@ -176,7 +179,11 @@ def calibrate(
     features = head_features(physical["wrench"][ok], physical["x0"][ok], physical["y0"][ok], physical["radius"][ok])
     from ._inversion import WRENCH_SCALE
 
-    head, head_record = train_residual_head(features, (wrenches[ok] - physical["wrench"][ok]) / WRENCH_SCALE)
+    if ok.sum() >= MIN_HEAD_FRAMES:
+        head, head_record = train_residual_head(features, (wrenches[ok] - physical["wrench"][ok]) / WRENCH_SCALE)
+    else:
+        # A learned correction from a few dozen frames extrapolates badly to other loads.
+        head, head_record = None, {"skipped": f"{int(ok.sum())} usable frames, fewer than {MIN_HEAD_FRAMES}"}
     corrected = _apply_head(head, physical)
     tilt, tilt_r2 = fit_tilt_matrix(physical["x0"][ok], physical["y0"][ok], wrenches[ok][:, 3:5], result.device)
     fitted_device = eqx_replace_tilt(result.device, tilt)
@@ -213,13 +220,16 @@ def calibrate(
         },
     )
     _plot_parameters(report_dir / "parameters.png", parameters)
-    head_path = _head_path(out)
-    save_head(head_path, head)
+    head_name = None
+    if head is not None:
+        head_path = _head_path(out)
+        save_head(head_path, head)
+        head_name = head_path.name
     calibration = {
         "dataset": str(data),
         "recipe": recipe.name,
         "uncertainty": result.uncertainty,
-        "residual_head": head_path.name,
+        "residual_head": head_name,
         "metrics": {"r2": metrics["r2"], "mae": metrics["mae"]},
     }
     # The device file is written last: it is what marks a calibration as complete.

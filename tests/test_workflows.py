@@ -42,7 +42,8 @@ def test_calibrate_evaluate_transfer(datasets):
         progress=False,
     )
     fitted, head = mj._workflows.load_calibrated(root / "fit.json")
-    assert head is not None
+    # Too few frames for a residual head: the calibration says so instead of overfitting.
+    assert head is None and "skipped" in json.loads((root / "fit_report" / "metrics.json").read_text())["residual_head"]
     obj = json.loads((root / "fit.json").read_text())
     assert set(obj["calibration"]["uncertainty"]) == set(Recipe().free)
     report = root / "fit_report"
@@ -54,12 +55,13 @@ def test_calibrate_evaluate_transfer(datasets):
     written = json.loads((root / "eval" / "metrics.json").read_text())
     for key in ("r2", "mae", "rmse", "coverage95"):
         assert set(written[key]) == {"fx", "fy", "fz", "tx", "ty", "tz"}
-    # A calibrated unit on model-fidelity frames: the normal force is well determined.
-    assert metrics["r2"]["fz"] > 0.9, metrics["r2"]
+    # A calibrated unit on model-fidelity frames: the normal force is well determined
+    # even from this tiny calibration.
+    assert metrics["r2"]["fz"] > 0.8, metrics["r2"]
 
     transfer(root / "fit.json", root / "test", root / "fit_b.json", max_frames=5, progress=False)
     fitted_b, head_b = mj._workflows.load_calibrated(root / "fit_b.json")
-    assert head_b is not None and fitted_b.layout == fitted.layout
+    assert head_b is None and fitted_b.layout == fitted.layout
 
 
 def test_interrupted_calibration_leaves_no_device_file(datasets, monkeypatch):
