@@ -102,13 +102,13 @@ def ridge_baseline(train_frames, train_wrench, test_frames, reference, *, size: 
     mean_x, mean_y = X.mean(0), train_wrench.mean(0)
     Xc, Yc = X - mean_x, train_wrench - mean_y
     U, s, Vt = np.linalg.svd(Xc, full_matrices=False)
-    best = None
+    best = (np.inf, 1.0)
     for lam in 10.0 ** np.arange(-6, 3):
         d = s**2 / (s**2 + lam)
         hat_diag = np.sum(U**2 * d, axis=1)
         fitted = U @ (d[:, None] * (U.T @ Yc))
         loo = np.mean(((Yc - fitted) / np.maximum(1 - hat_diag, 1e-6)[:, None]) ** 2)
-        if best is None or loo < best[0]:
+        if loo < best[0]:
             best = (loo, lam)
     lam = best[1]
     coef = Vt.T @ ((s / (s**2 + lam))[:, None] * (U.T @ Yc))
