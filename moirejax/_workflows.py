@@ -44,8 +44,13 @@ def invert_frames(inverter: Inverter, frames, *, progress: bool = True, desc: st
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def _head_path(device_path: Path) -> Path:
-    return device_path.with_suffix(".head.eqx")
+def _save_head_beside(device_path: Path, head: ResidualHead | None) -> str | None:
+    """Write `head` next to the device file; returns the name the device file records."""
+    if head is None:
+        return None
+    path = device_path.with_suffix(".head.eqx")
+    save_head(path, head)
+    return path.name
 
 
 def load_calibrated(device_path: str | Path) -> tuple[Device, ResidualHead | None]:
@@ -220,11 +225,7 @@ def calibrate(
         },
     )
     _plot_parameters(report_dir / "parameters.png", parameters)
-    head_name = None
-    if head is not None:
-        head_path = _head_path(out)
-        save_head(head_path, head)
-        head_name = head_path.name
+    head_name = _save_head_beside(out, head)
     calibration = {
         "dataset": str(data),
         "recipe": recipe.name,
@@ -287,11 +288,7 @@ def transfer(
     result = fit_physical_parameters(
         device, reference, frames, dataset.wrenches[idx], TRANSFER_RECIPE, progress=progress
     )
-    head_name = None
-    if head is not None:
-        head_path = _head_path(out)
-        save_head(head_path, head)
-        head_name = head_path.name
+    head_name = _save_head_beside(out, head)
     calibration = {
         "dataset": str(data),
         "recipe": TRANSFER_RECIPE.name,
