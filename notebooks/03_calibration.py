@@ -61,7 +61,7 @@ SEED = 3  # draws the unit (its deviations), its loads and its noise
 N_CALIBRATION = 16 if SMOKE else 300  # calibration frames (paper protocol), a few contact-free first
 N_HELDOUT = 8 if SMOKE else 60  # held-out frames (mixed loads); the first two are contact-free
 RECIPE = Recipe(rounds=1, parameter_frames=8, parameter_steps=3, latent_steps=6) if SMOKE else Recipe()
-BASELINE_SIZES = (10,) if SMOKE else (20, 100, 500)
+BASELINE_SIZES = (10,) if SMOKE else (20, 100, 200)
 
 work = Path(tempfile.mkdtemp(prefix="moirejax-03-"))  # datasets, device files and report PNGs
 nominal = mj.preset("mid")
