@@ -55,9 +55,13 @@ from ._geometry import (
 from ._inversion import (
     Estimate as Estimate,
     invert_batch as invert_batch,
+    invert_chunk as invert_chunk,
     invert_frame as invert_frame,
+    invert_sequence as invert_sequence,
     Inverter as Inverter,
     Status as Status,
+    Track as Track,
+    track_frame as track_frame,
 )
 from ._metrics import wrench_metrics as wrench_metrics
 from ._observability import (

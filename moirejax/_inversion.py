@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from ._band_model import complex_ratio, predicted_bands
 from ._contact import Contact, NMM_PER_NM
@@ -146,6 +146,8 @@ class Inverter(eqx.Module):
     rtol: float = eqx.field(static=True)
     atol: float = eqx.field(static=True)
     contact_threshold: float = eqx.field(static=True)
+    chord_steps: int = eqx.field(static=True)
+    chord_tolerance: float = eqx.field(static=True)
 
     def __init__(
         self,
@@ -160,6 +162,8 @@ class Inverter(eqx.Module):
         atol: float = 1e-5,
         contact_threshold: float = 8.0,
         match_reference: bool = True,
+        chord_steps: int = 4,
+        chord_tolerance: float = 0.25,
     ):
         if reference is not None:
             reference = np.asarray(reference, dtype=np.asarray(device.p1).dtype)
@@ -175,6 +179,8 @@ class Inverter(eqx.Module):
         self.rtol = rtol
         self.atol = atol
         self.contact_threshold = contact_threshold
+        self.chord_steps = chord_steps
+        self.chord_tolerance = chord_tolerance
         self.demodulator = Demodulator(
             (device.height, device.width),
             float(device.px_per_mm),
@@ -270,15 +276,14 @@ class Inverter(eqx.Module):
         return jnp.concatenate([self._data_residuals(y, observed), self._prior_residuals(y, noise)])
 
     def observe(self, frame: Float[Array, "h w"]) -> FringeFields:
-        """Demodulate a frame."""
-        return self.demodulator(frame)
+        """Demodulate a frame, normalised at the reference frame's wavevectors."""
+        return self.demodulator(frame, self.reference.reference_wavevector)
 
-    def _noise_level(self, observed: FringeFields) -> Float[Array, ""]:
-        # Whitened residual RMS of the reference against itself is zero; use the residual
-        # of the zero-load model outside the contact as a robust noise estimate instead:
-        # the median absolute whitened residual, scaled to a Gaussian sigma.
-        r = self._data_residuals(initial_state(dtype=observed.brightness.dtype), observed)
-        return jnp.maximum(jnp.median(jnp.abs(r)) / 0.6745, 1e-9)
+    def _zero_residuals(self, observed: FringeFields):
+        # The zero-load prediction, reference-corrected, is the reference itself.
+        fringe = (observed.fringe - self.reference.fringe) * self.fringe_weight.astype(observed.fringe.dtype)
+        brightness = (observed.brightness - self.reference.brightness) * self.brightness_weight
+        return jnp.concatenate([fringe.real.ravel(), fringe.imag.ravel(), brightness.ravel()])
 
     def initial_guess(self, observed: FringeFields) -> Float[Array, "10"]:
         """A cold start from the brightness excess: its centroid places the contact, its
@@ -312,78 +317,256 @@ class Inverter(eqx.Module):
             .set(y0)
         )
 
-    def solve(self, frame: Float[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
-        """Invert one frame. Pure and jit-able; see [`invert_frame`][] for the jitted entry point.
+    def cold_track(self) -> "Track":
+        """The [`Track`][] of a stream before its first frame (or after a reset)."""
+        dtype = self.device.p1.dtype
+        n = self.noise_residuals.shape[1]
+        return Track(
+            state=jnp.full(N_UNKNOWNS, jnp.nan, dtype),
+            jacobian=jnp.zeros((n, N_UNKNOWNS), dtype),
+            valid=jnp.asarray(False),
+        )
 
-        `init` warm-starts the solver (the previous frame's `Estimate.state`); `None` or a
-        non-finite `init` means a cold start from the brightness excess.
-        """
+    def _prepare(self, frame):
         if frame.shape != (self.device.height, self.device.width):
             raise ValueError(f"frame has shape {frame.shape}, device expects {(self.device.height, self.device.width)}")
-        dtype = self.device.p1.dtype
-        frame = frame.astype(dtype)
+        frame = frame.astype(self.device.p1.dtype)
         finite = jnp.all(jnp.isfinite(frame))
         clean = jnp.where(finite, frame, 0.0)
         observed = self.observe(clean)
-        cold = self.initial_guess(observed)
-        noise = self._noise_level(observed)
-        if init is None:
-            y0 = cold
-        else:
-            # Warm start when it explains the frame better than the cold guess does: true
-            # for a camera stream, false after a jump to an unrelated load.
-            def cost(y):
-                return jnp.sum(self.residuals(y, (observed, noise)) ** 2)
+        r_zero = self._zero_residuals(observed)
+        # Robust noise level: the median absolute whitened residual of zero load (most of
+        # the field is outside any contact), scaled to a Gaussian sigma.
+        noise = jnp.maximum(jnp.median(jnp.abs(r_zero)) / 0.6745, 1e-9)
+        return frame, finite, observed, r_zero, noise
 
-            usable = jnp.all(jnp.isfinite(init))
-            warm = jnp.where(usable, init, cold)
-            y0 = jnp.where(usable & (cost(warm) < cost(cold)), warm, cold)
+    def _prior_jacobian(self, y, noise):
+        return jax.jacfwd(self._prior_residuals)(y, noise)
+
+    def _chord(self, y, jacobian, args):
+        r"""Gauss–Newton iterations from the last frame's Jacobian, kept current by Broyden updates.
+
+        At camera rate consecutive frames are close, so the data Jacobian barely changes;
+        reusing it makes each iteration one model evaluation instead of eleven. Each step
+        $\Delta y$ and the residual change $\Delta r$ it caused (exact: same frame, same
+        model) update the Jacobian along that direction,
+        $J \leftarrow J + (\Delta r - J\Delta y)\Delta y^\top / \Delta y^\top\Delta y$,
+        so it follows the load along the stream instead of going stale. The iterations
+        stop when the next step would move every unknown by less than `chord_tolerance`
+        of its standard error; the frame is handed to Levenberg–Marquardt if that has not
+        happened after `chord_steps` iterations or if the cost rises.
+        Returns `(y, r, jacobian, steps, accepted)`.
+        """
+        observed, noise = args
+
+        def step(y, r, jacobian):
+            prior_jac = self._prior_jacobian(y, noise)
+            jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
+            gradient = jacobian.T @ r[:-3] + prior_jac.T @ r[-3:]
+            inverse = jnp.linalg.pinv(jtj, hermitian=True)
+            dy = -inverse @ gradient
+            # Steps in units of each unknown's standard error at this noise level.
+            sigma = noise * jnp.sqrt(jnp.clip(jnp.diagonal(inverse), 1e-30, None))
+            return dy, jnp.max(jnp.abs(dy) / sigma)
+
+        r = self.residuals(y, args)
+        cost0 = jnp.sum(r**2)
+        dy, size = step(y, r, jacobian)
+
+        def cond(carry):
+            *_, size, k, ok = carry
+            return ok & (size > self.chord_tolerance) & (k < self.chord_steps)
+
+        def body(carry):
+            y, r, jacobian, dy, size, k, _ = carry
+            y_new = y + dy
+            r_new = self.residuals(y_new, args)
+            # Below ~1e-4 of an axis' range the residual change is rounding, not secant.
+            secant = jnp.max(jnp.abs(dy)) > 1e-4
+            mismatch = (r_new - r)[:-3] - jacobian @ dy
+            update = jnp.outer(mismatch, dy) / jnp.maximum(jnp.sum(dy**2), 1e-30)
+            jacobian = jnp.where(secant & jnp.all(jnp.isfinite(update)), jacobian + update, jacobian)
+            dy_new, size_new = step(y_new, r_new, jacobian)
+            # A rising cost or a growing step means the Jacobian is too far from the truth:
+            # give the frame to Levenberg–Marquardt. (Single precision resolves the cost to
+            # about 1e-6 of itself, a step of ~0.1 standard error, hence the slack.)
+            shrinking = (size_new < size) | (size_new <= self.chord_tolerance)
+            ok = (jnp.sum(r_new**2) <= cost0 * (1 + 1e-5)) & shrinking & jnp.all(jnp.isfinite(r_new))
+            return y_new, r_new, jacobian, dy_new, size_new, k + 1, ok
+
+        init = (y, r, jacobian, dy, size, jnp.asarray(0, jnp.int32), jnp.all(jnp.isfinite(r)))
+        y, r, jacobian, _, size, steps, ok = jax.lax.while_loop(cond, body, init)
+        return y, r, jacobian, steps, ok & (size <= self.chord_tolerance)
+
+    def _data_jacobian(self, y, observed):
+        return jax.jacfwd(self._data_residuals)(y, observed)
+
+    def _levenberg_marquardt(self, y0, args):
         solver = optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol, linear_solver=lx.QR())
-        sol = optx.least_squares(
-            self.residuals, solver, y0, args=(observed, noise), max_steps=self.max_steps, throw=False
-        )
+        sol = optx.least_squares(self.residuals, solver, y0, args=args, max_steps=self.max_steps, throw=False)
         y = sol.value
-        r = self.residuals(y, (observed, noise))
+        steps = jnp.asarray(sol.stats["num_steps"], jnp.int32)
+        return y, self.residuals(y, args), self._data_jacobian(y, args[0]), steps, sol.result
+
+    def _best_start(self, candidates, args):
+        costs = jnp.stack([jnp.sum(self.residuals(c, args) ** 2) for c in candidates])
+        costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+        return jnp.stack(candidates)[jnp.argmin(costs)]
+
+    def _finish(self, frame, finite, observed, r_zero, noise, y, r, jacobian, steps, result, start):
+        """Covariance, contact test and status of a solution `y` with residual `r`."""
+        dtype = y.dtype
         r_data = r[:-3]
-        J = jax.jacfwd(self.residuals)(y, (observed, noise))
-        J_data = J[:-3]
-        inverse = jnp.linalg.pinv(J.T @ J, hermitian=True)
+        prior_jac = self._prior_jacobian(y, noise)
+        jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
+        inverse = jnp.linalg.pinv(jtj, hermitian=True)
         # Sandwich covariance for correlated noise: the estimate moves by A e for a data
         # noise e, A = (J^T J)^-1 J_data^T; E[e e^T] comes from the stored unit-noise draws.
         # The pixel variance is what makes the residual's expected size match its actual one.
-        moved = inverse @ (J_data.T @ self.noise_residuals.T)  # (unknowns, samples)
+        moved = inverse @ (jacobian.T @ self.noise_residuals.T)  # (unknowns, samples)
         samples = self.noise_residuals.shape[0]
         unit_cov = moved @ moved.T / samples
-        explained = J_data @ moved
-        unit_rss = (jnp.sum(self.noise_residuals**2) - jnp.sum(explained**2)) / samples
+        explained = jnp.sum(moved * ((jacobian.T @ jacobian) @ moved)) / samples
+        unit_rss = jnp.sum(self.noise_residuals**2) / samples - explained
         variance = jnp.sum(r_data**2) / jnp.maximum(unit_rss, 1e-30)
         cov_y = unit_cov * variance
         scale = jnp.asarray(WRENCH_SCALE, dtype)
         covariance = cov_y[:6, :6] * scale[:, None] * scale[None, :]
         wrench, contact, exposure = _unpack(y)
-        # Contact test: does the fit explain significantly more than zero load?
-        r_zero = self._data_residuals(initial_state(dtype=dtype), observed)
-        # Noise alone would make the fit explain `explained_noise` of the zero-load residual.
-        explained_noise = variance * jnp.sum(explained**2) / samples
+        # Contact test: does the fit explain significantly more than zero load? Noise alone
+        # would make the fit explain `explained_noise` of the zero-load residual.
+        explained_noise = variance * explained
         f_stat = (jnp.sum(r_zero**2) - jnp.sum(r_data**2)) / jnp.maximum(explained_noise, 1e-30)
         in_contact = f_stat > self.contact_threshold
-        status = _status(sol.result, finite, frame, observed, self.reference, in_contact, y)
+        status = _status(result, finite, frame, observed, self.reference, in_contact, y)
         ok = (status == Status.CONVERGED) | (status == Status.MAX_STEPS)
         nan6 = jnp.full(6, jnp.nan, dtype)
         wrench = jnp.where(ok, wrench, jnp.where(status == Status.NO_CONTACT, jnp.zeros(6, dtype), nan6))
         covariance = jnp.where(ok | (status == Status.NO_CONTACT), covariance, jnp.full((6, 6), jnp.nan, dtype))
         sigma = jnp.sqrt(jnp.clip(jnp.diagonal(covariance), 0.0, None))
-        return Estimate(
+        estimate = Estimate(
             wrench=wrench,
             covariance=covariance,
             sigma=sigma,
             contact=contact,
             exposure=exposure,
             status=status,
-            steps=sol.stats["num_steps"],
+            steps=steps,
             rms=jnp.sqrt(variance),
-            state=jnp.where(ok, y, y0),
+            state=jnp.where(ok, y, start),
         )
+        # Only a converged contact is a good linearisation point for the next frame.
+        track = Track(state=jnp.where(ok, y, jnp.nan), jacobian=jacobian, valid=status == Status.CONVERGED)
+        return estimate, track
+
+    def track(self, frame: Float[Array, "h w"], track: "Track") -> tuple[Estimate, "Track"]:
+        """Invert one frame of a stream; pure and jit-able (see [`track_frame`][]).
+
+        With a valid `track`, a few frozen-Jacobian Gauss–Newton iterations from the last
+        solution (about three model evaluations); if they do not converge, or without a
+        valid track, Levenberg–Marquardt from the best of the last solution and the cold
+        guess. Returns the estimate and the track for the next frame.
+        """
+        frame, finite, observed, r_zero, noise = self._prepare(frame)
+        args = (observed, noise)
+        cold = self.initial_guess(observed)
+        usable = track.valid & jnp.all(jnp.isfinite(track.state))
+        warm = jnp.where(usable, track.state, cold)
+        y_chord, r_chord, j_chord, chord_steps, accepted = self._chord(warm, track.jacobian, args)
+        accepted = usable & accepted
+
+        def fast(_):
+            return y_chord, r_chord, j_chord, chord_steps, optx.RESULTS.successful
+
+        def slow(_):
+            # Second tier: the same iterations with a Jacobian evaluated afresh at the best
+            # point so far (about one Levenberg–Marquardt step's cost).
+            chord_ok = jnp.all(jnp.isfinite(y_chord)) & usable
+            start = self._best_start([cold, warm, jnp.where(chord_ok, y_chord, cold)], args)
+            y_fresh, r_fresh, j_fresh, fresh_steps, fresh_ok = self._chord(
+                start, self._data_jacobian(start, observed), args
+            )
+
+            def refreshed(_):
+                return y_fresh, r_fresh, j_fresh, chord_steps + fresh_steps, optx.RESULTS.successful
+
+            def levenberg_marquardt(_):
+                better = jnp.sum(r_fresh**2) < jnp.sum(self.residuals(start, args) ** 2)
+                return self._levenberg_marquardt(
+                    jnp.where(better & jnp.all(jnp.isfinite(y_fresh)), y_fresh, start), args
+                )
+
+            return jax.lax.cond(fresh_ok, refreshed, levenberg_marquardt, None)
+
+        y, r, jacobian, steps, result = jax.lax.cond(accepted, fast, slow, None)
+        return self._finish(frame, finite, observed, r_zero, noise, y, r, jacobian, steps, result, warm)
+
+    def solve(self, frame: Float[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
+        """Invert one frame with Levenberg–Marquardt. Pure and jit-able; see [`invert_frame`][].
+
+        `init` warm-starts the solver (the previous frame's `Estimate.state`); `None` or a
+        non-finite `init` means a cold start from the brightness excess. Streams are faster
+        through [`Inverter.track`][].
+        """
+        frame, finite, observed, r_zero, noise = self._prepare(frame)
+        args = (observed, noise)
+        cold = self.initial_guess(observed)
+        if init is None:
+            y0 = cold
+        else:
+            # Warm start when it explains the frame better than the cold guess does: true
+            # for a camera stream, false after a jump to an unrelated load.
+            usable = jnp.all(jnp.isfinite(init))
+            y0 = self._best_start([cold, jnp.where(usable, init, cold)], args)
+        y, r, jacobian, steps, result = self._levenberg_marquardt(y0, args)
+        return self._finish(frame, finite, observed, r_zero, noise, y, r, jacobian, steps, result, y0)[0]
+
+    def chord_batch(self, frames: Float[Array, "b h w"], track: "Track") -> tuple[Estimate, Bool[Array, " b"], "Track"]:
+        """Frozen-Jacobian iterations for a batch of nearby frames from one shared `track`.
+
+        Vectorises well (no Levenberg–Marquardt branch inside the vmap). Returns the
+        estimates, which frames converged this way (the others need [`Inverter.track`][]),
+        and a track at the batch's last accepted frame.
+        """
+
+        def one(frame):
+            frame, finite, observed, r_zero, noise = self._prepare(frame)
+            args = (observed, noise)
+            y, r, jacobian, steps, accepted = self._chord(track.state, track.jacobian, args)
+            estimate, _ = self._finish(
+                frame, finite, observed, r_zero, noise, y, r, jacobian, steps, optx.RESULTS.successful, y
+            )
+            # A frame the chord settles is done whatever its verdict; a frame that needs no
+            # solution (bad, non-finite) is done too.
+            status = estimate.status
+            settled = accepted & ((status == Status.CONVERGED) | (status == Status.NO_CONTACT))
+            return estimate, settled | (status == Status.BAD_FRAME) | (status == Status.NONFINITE), observed, noise
+
+        estimates, accepted, observed, noise = jax.vmap(one)(frames)
+        # Relinearise at the last accepted frame, so the next batch starts close.
+        converged = accepted & (estimates.status == Status.CONVERGED)
+        last = jnp.max(jnp.where(converged, jnp.arange(frames.shape[0]), -1))
+        index = jnp.maximum(last, 0)
+        y_last = estimates.state[index]
+        observed_last = jax.tree_util.tree_map(lambda x: x[index], observed)
+        jacobian = self._data_jacobian(y_last, observed_last)
+        found = last >= 0
+        new_track = Track(
+            state=jnp.where(found, y_last, track.state),
+            jacobian=jnp.where(found, jacobian, track.jacobian),
+            valid=found | track.valid,
+        )
+        return estimates, accepted, new_track
+
+
+class Track(eqx.Module):
+    """What a stream carries from frame to frame: the last solution and the data Jacobian
+    there (`valid` false before the first converged contact). Make the first one with
+    [`Inverter.cold_track`][]."""
+
+    state: Float[Array, "10"]
+    jacobian: Float[Array, "n 10"]
+    valid: Bool[Array, ""]
 
 
 def _status(result, finite, frame, observed, reference, in_contact, y):
@@ -413,3 +596,71 @@ def invert_batch(
     if init is None:
         return jax.vmap(lambda f: inverter.solve(f, None))(frames)
     return jax.vmap(inverter.solve)(frames, init)
+
+
+@eqx.filter_jit
+def track_frame(inverter: Inverter, frame: Float[Array, "h w"], track: Track) -> tuple[Estimate, Track]:
+    """Invert the next frame of a stream: `estimate, track = track_frame(inverter, frame, track)`,
+    starting from `inverter.cold_track()`. The fast path of a camera stream."""
+    return inverter.track(frame, track)
+
+
+@eqx.filter_jit
+def _chord_batch(inverter: Inverter, frames, track: Track):
+    return inverter.chord_batch(frames, track)
+
+
+def invert_chunk(inverter: Inverter, frames, track: Track, batch: int) -> tuple[list[Estimate], Track]:
+    """Invert up to `batch` consecutive frames of a stream that continues from `track`.
+
+    The frames go through frozen-Jacobian iterations from `track`, vectorised
+    ([`Inverter.chord_batch`][]; a short chunk is padded so one program serves all);
+    frames those do not settle are solved one by one with [`Inverter.track`][], which
+    also starts a stream when `track` is not valid yet. Returns the estimates, in order,
+    and the track to continue from.
+    """
+    dtype = np.dtype(inverter.device.p1.dtype)
+    frames = [np.asarray(f, dtype) for f in frames]
+    n = len(frames)
+    if n > batch:
+        raise ValueError(f"{n} frames do not fit a chunk of {batch}")
+    out: list = [None] * n
+    start = 0
+    # Nothing to linearise around yet: solve frames one by one until one converges.
+    while start < n and not bool(track.valid):
+        out[start], track = track_frame(inverter, frames[start], track)
+        start += 1
+    if start < n:
+        stack = np.stack(frames[start:] + [frames[-1]] * (batch - (n - start)))
+        estimates, accepted, batch_track = _chord_batch(inverter, stack, track)
+        accepted = np.asarray(accepted)
+        previous = track
+        for i in range(start, n):
+            if accepted[i - start]:
+                out[i] = jax.tree_util.tree_map(lambda x, j=i - start: x[j], estimates)
+            else:
+                out[i], previous = track_frame(inverter, frames[i], previous)
+        track = batch_track if accepted[: n - start].any() else previous
+    return out, track
+
+
+def invert_sequence(inverter: Inverter, frames, *, batch: int = 16, progress: bool = False, desc: str = "invert"):
+    """Invert an ordered sequence of frames (a recording) for throughput; yields `Estimate`s.
+
+    Chunks of `batch` frames go through [`invert_chunk`][]. The results match a
+    frame-by-frame [`track_frame`][] stream to about one standard error (both stop
+    iterating within a quarter of one). `frames` is an iterable of `(h, w)` arrays.
+    """
+    from tqdm.auto import tqdm
+
+    track = inverter.cold_track()
+    pending: list = []
+    for frame in tqdm(frames, desc=desc, unit="frame", disable=not progress):
+        pending.append(frame)
+        if len(pending) == batch:
+            estimates, track = invert_chunk(inverter, pending, track, batch)
+            yield from estimates
+            pending = []
+    if pending:
+        estimates, track = invert_chunk(inverter, pending, track, batch)
+        yield from estimates

@@ -6,10 +6,11 @@ import math
 from collections.abc import Iterator
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from ._fileio import atomic_write_text, DataError
-from ._inversion import Estimate, invert_batch, invert_frame, Inverter, Status
+from ._inversion import Estimate, invert_chunk, Inverter, Status, track_frame
 
 
 WRENCH_COLUMNS = ("fx", "fy", "fz", "tx", "ty", "tz")
@@ -147,30 +148,27 @@ def invert_recording(
 ) -> dict[str, int]:
     """Invert every frame of `source` and write `out_csv` (atomically, at the end).
 
-    Frames are inverted one at a time, each warm-started from the last good one, or in
-    independent batches of `batch` frames (higher throughput, cold starts). Bad frames
-    give status rows, never an exception. Returns the count of each status.
+    Frames are inverted as a stream ([`track_frame`][]: each continues from the last
+    good one), or, with `batch > 1`, in chunks of `batch` consecutive frames vectorised
+    from the previous chunk's solution ([`invert_chunk`][]; higher throughput, the same
+    estimates to about one standard error). Bad frames give status rows, never an
+    exception. Returns the count of each status.
     """
     from tqdm.auto import tqdm
 
     shape = (inverter.device.height, inverter.device.width)
     rows: list[list] = []
     counts: dict[str, int] = {}
-    # NaN state = cold start; one array type so the solve compiles once.
-    cold = np.full(10, np.nan, dtype=np.asarray(inverter.device.p1).dtype)
-    state = cold
+    track = inverter.cold_track()
     pending: list[tuple[str, np.ndarray]] = []
 
     def flush():
+        nonlocal track
         if not pending:
             return
-        frames = np.stack([f for _, f in pending])
-        # Pad a short last batch so the compiled batch shape never changes.
-        padded = np.concatenate([frames, np.repeat(frames[-1:], batch - len(frames), axis=0)]) if batch > 1 else frames
-        estimate = invert_batch(inverter, padded)
-        n = len(pending)
-        estimate_n = _take(estimate, n)
-        rows.extend(_rows([name for name, _ in pending], estimate_n, [None] * n, head))
+        estimates, track = invert_chunk(inverter, [f for _, f in pending], track, batch)
+        stacked = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *estimates)
+        rows.extend(_rows([name for name, _ in pending], stacked, [None] * len(pending), head))
         pending.clear()
 
     for name, frame, error in tqdm(
@@ -195,9 +193,7 @@ def invert_recording(
             if len(pending) == batch:
                 flush()
             continue
-        estimate = invert_frame(inverter, frame, state)
-        # Warm-start only from a frame in contact: a no-contact state is a poor guess.
-        state = estimate.state if int(estimate.status) in (Status.CONVERGED, Status.MAX_STEPS) else cold
+        estimate, track = track_frame(inverter, frame, track)
         rows.extend(_rows([name], _expand(estimate), [None], head))
     flush()
     for row in rows:
@@ -217,12 +213,4 @@ def _fmt(value) -> str:
 
 
 def _expand(estimate: Estimate) -> Estimate:
-    import jax
-
     return jax.tree_util.tree_map(lambda x: np.asarray(x)[None], estimate)
-
-
-def _take(estimate: Estimate, n: int) -> Estimate:
-    import jax
-
-    return jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], estimate)

@@ -259,8 +259,11 @@ class _Demodulated(NamedTuple):
     reference: Any  # band-passed unit fringes at the reference wavevectors
 
 
-def _demodulate(xp, plan, spectrum):
-    """The whole demodulation, for `xp` = numpy or jax.numpy; `plan` holds the geometry."""
+def _demodulate(xp, plan, spectrum, reference_k=None):
+    """The whole demodulation, for `xp` = numpy or jax.numpy; `plan` holds the geometry.
+
+    `reference_k` fixes the normalisation wavevectors instead of measuring them.
+    """
     h, w = plan.frame_shape
     m, n = plan.crop_shape
     dtype = spectrum.dtype
@@ -269,8 +272,12 @@ def _demodulate(xp, plan, spectrum):
     nominal = _cast(xp, plan.wavevectors, real_dtype)
     transfer = _cast(xp, plan.fringe_transfer, dtype)
     windows = xp.stack([_crop(xp, spectrum, p - 1, q - 1, m + 2, n + 2) for p, q in plan.crop_starts])
-    peaks = _peak_wavevectors(xp, windows, plan.peak_support, plan.crop_starts, plan.frame_shape, pixel)
-    reference_k = _reference_wavevectors(xp, peaks, nominal, 0.5 * _cast(xp, plan.band_radius, real_dtype))
+    if reference_k is None:
+        peaks = _peak_wavevectors(xp, windows, plan.peak_support, plan.crop_starts, plan.frame_shape, pixel)
+        reference_k = _reference_wavevectors(xp, peaks, nominal, 0.5 * _cast(xp, plan.band_radius, real_dtype))
+    else:
+        reference_k = _cast(xp, reference_k, real_dtype)
+        peaks = reference_k
     tones = _tone_windows(xp, reference_k, plan.crop_starts, plan.frame_shape, plan.crop_shape, pixel, dtype)
     raw = _band_pass(xp, windows, transfer, plan.apodize, h, w)
     reference = _band_pass(xp, tones, transfer, plan.apodize, h, w)
@@ -553,23 +560,29 @@ class Demodulator(eqx.Module):
         col = jnp.sin(math.pi * jnp.arange(0.5, cols) / cols) ** 2
         return row[:, None] * col[None, :]
 
-    def _demodulate(self, frame):
+    def _demodulate(self, frame, reference_wavevector=None):
         _check_shape("frame", frame.shape, self.frame_shape)
-        return _demodulate(jnp, self, jnp.fft.rfft2(frame))
+        return _demodulate(jnp, self, jnp.fft.rfft2(frame), reference_wavevector)
 
     @eqx.filter_jit
-    def __call__(self, frame: Float[Array, "h w"]) -> FringeFields:
+    def __call__(
+        self, frame: Float[Array, "h w"], reference_wavevector: Float[Array, "families 2"] | None = None
+    ) -> FringeFields:
         """Demodulate one frame.
 
         **Arguments:**
 
         - `frame`: rectified grayscale frame of shape `frame_shape`, float32 or float64.
+        - `reference_wavevector`: normalise to unit fringes at these wavevectors instead of
+          the frame's own spectral peaks. A unit's stream demodulated against its reference
+          frame's wavevectors goes through one fixed linear operator, so differences of
+          fields are differences of frames.
 
         **Returns:**
 
         A [`moirejax.FringeFields`][] on the coarse grid, in the frame's precision.
         """
-        out = self._demodulate(frame)
+        out = self._demodulate(frame, reference_wavevector)
         return FringeFields(fringe=out.fringe, brightness=out.brightness, reference_wavevector=out.reference_k)
 
     def _reference_response(self, reference_k, dtype):

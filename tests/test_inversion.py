@@ -5,7 +5,7 @@ import pytest
 
 import moirejax as mj
 from moirejax._contact import Contact
-from moirejax._inversion import invert_batch, invert_frame, Inverter, Status, WRENCH_SCALE
+from moirejax._inversion import invert_batch, invert_frame, invert_sequence, Inverter, Status, track_frame, WRENCH_SCALE
 from moirejax._render import render_frame
 from moirejax._simulate import load_schedule
 
@@ -92,3 +92,75 @@ def test_batch_matches_single(mid, inverter):
     batch = invert_batch(inverter, frames)
     single = invert_frame(inverter, frames[1])
     np.testing.assert_allclose(np.asarray(batch.wrench[1]), np.asarray(single.wrench), rtol=1e-3, atol=1e-4)
+
+
+def _noisy_stream(mid, n, seed=0):
+    """A press and twist at camera rate, with 1% pixel noise."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, n)
+    wrenches = np.stack([0.05 * t, 0.02 * t, 0.4 + 0.4 * t, 0 * t, 0 * t, 0.003 * t], axis=1)
+    frames = [
+        np.clip(
+            np.asarray(render_frame(mid, jnp.asarray(w), Contact(1.0, -0.5, 3.5))) + rng.normal(0, 0.01, (512, 512)),
+            0,
+            1,
+        )
+        for w in wrenches
+    ]
+    return wrenches, [f.astype(np.asarray(mid.p1).dtype) for f in frames]
+
+
+@pytest.fixture(scope="module")
+def stream(mid):
+    return _noisy_stream(mid, 10)
+
+
+def test_tracking_agrees_with_levenberg_marquardt_and_never_retraces(mid, inverter, stream):
+    wrenches, frames = stream
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def track(inverter, frame, track):
+        return inverter.track(frame, track)
+
+    state = inverter.cold_track()
+    steps = []
+    for i, frame in enumerate(frames):
+        estimate, state = track(inverter, frame, state)
+        assert Status(int(estimate.status)) == Status.CONVERGED
+        steps.append(int(estimate.steps))
+        if i in (3, 9):
+            reference = invert_frame(inverter, frame)
+            # Both stop within a fraction of a standard error of the least-squares solution.
+            difference = np.abs(np.asarray(estimate.wrench) - np.asarray(reference.wrench))
+            assert np.all(difference < 1.0 * np.asarray(reference.sigma) + 1e-4 * WRENCH_SCALE), difference
+    # After the first frame the frozen-Jacobian iterations carry the stream (a few model
+    # evaluations per frame; Levenberg-Marquardt would take ten or more steps).
+    assert np.median(steps[1:]) <= 3, steps
+
+
+def test_sequence_in_chunks_matches_the_stream_and_reports_bad_frames(mid, inverter, stream):
+    wrenches, frames = stream
+    frames = list(frames)
+    frames[6] = np.zeros_like(frames[6])
+    estimates = list(invert_sequence(inverter, frames, batch=4))
+    assert len(estimates) == len(frames)
+    statuses = [Status(int(e.status)) for e in estimates]
+    assert statuses[6] == Status.BAD_FRAME
+    assert np.all(np.isnan(np.asarray(estimates[6].wrench)))
+    for i, estimate in enumerate(estimates):
+        if i == 6:
+            continue
+        assert statuses[i] == Status.CONVERGED
+        error = np.abs(np.asarray(estimate.wrench) - wrenches[i]) / WRENCH_SCALE
+        assert np.all(error < 0.08), (i, error)
+
+
+def test_tracking_recovers_from_a_jump_to_an_unrelated_load(mid, inverter, stream):
+    _, frames = stream
+    estimate, state = track_frame(inverter, frames[-1], inverter.cold_track())
+    far = np.asarray(render_frame(mid, jnp.array([-0.1, 0.08, 1.0, 0.0, 0.0, -0.004]), Contact(-4.0, 3.0, 3.0)))
+    estimate, state = track_frame(inverter, far, state)
+    assert Status(int(estimate.status)) == Status.CONVERGED
+    error = np.abs(np.asarray(estimate.wrench) - [-0.1, 0.08, 1.0, 0.0, 0.0, -0.004]) / WRENCH_SCALE
+    assert np.all(error < 0.08), error

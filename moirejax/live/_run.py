@@ -25,7 +25,7 @@ import numpy as np
 from .._contact import Contact
 from .._device import Device
 from .._fileio import DataError
-from .._inversion import invert_frame, Inverter, Status
+from .._inversion import Inverter, Status, track_frame
 from .._simulate import load_schedule, LoadSchedule, Simulator
 from ._camera import (
     AbstractFrameSource,
@@ -66,15 +66,15 @@ GATE_ON_THRESHOLD = 0.001
 
 
 class TactileProcessor:
-    """`process_tactile` for [`run_pipeline`][]: one warm-started [`invert_frame`][] per frame.
+    """`process_tactile` for [`run_pipeline`][]: one [`track_frame`][] per frame.
 
     Made by [`make_tactile_processor`][]. Each call returns `(wrench, covariance, status,
     message)` with `status` the lower-case [`Status`][] name (`"converged"`,
     `"max_steps"`, `"no_contact"`, `"bad_frame"`, `"nonfinite"`, `"wrong_size"`). The solver
-    is warm-started from the previous frame's state while frames converge; any other
-    outcome resets it to a cold start, so one bad frame cannot drag the next ones off.
-    Frames are cast to the device's dtype and the state is a numpy array of that dtype,
-    so every call hits the one compiled `invert_frame`.
+    continues from the previous frame's solution and Jacobian while frames converge; any
+    other outcome resets it to a cold start, so one bad frame cannot drag the next ones
+    off. Frames are cast to the device's dtype, so every call hits the one compiled
+    `track_frame`.
     """
 
     def __init__(self, inverter: Inverter, warmup_frame: np.ndarray | None = None):
@@ -82,8 +82,8 @@ class TactileProcessor:
         self.inverter = inverter
         self.shape = (device.height, device.width)
         self.dtype = np.dtype(device.p1.dtype)
-        self.cold_state = np.full(10, np.nan, self.dtype)
-        self.state = self.cold_state
+        self.cold_track = inverter.cold_track()
+        self.track = self.cold_track
         # Compile now, not on the first contact: a 512x512 solve compiles for tens of
         # seconds on a laptop CPU. Any frame of the right size compiles the same program.
         frame = np.full(self.shape, 0.5, self.dtype) if warmup_frame is None else warmup_frame
@@ -92,7 +92,7 @@ class TactileProcessor:
 
     def reset(self) -> None:
         """Forget the warm start (the next frame is solved from a cold start)."""
-        self.state = self.cold_state
+        self.track = self.cold_track
 
     def __call__(self, gray: np.ndarray) -> TactileOutput:
         frame = np.asarray(gray, dtype=self.dtype)
@@ -101,9 +101,8 @@ class TactileProcessor:
             status = Status.WRONG_SIZE
             message = f"{status.message} (frame {frame.shape}, device {self.shape}; rectify the camera frames)"
             return np.full(6, np.nan), None, status.name.lower(), message
-        estimate = invert_frame(self.inverter, frame, self.state)
+        estimate, self.track = track_frame(self.inverter, frame, self.track)
         status = Status(int(estimate.status))
-        self.state = np.asarray(estimate.state, self.dtype) if status == Status.CONVERGED else self.cold_state
         return (
             np.asarray(estimate.wrench, np.float64),
             np.asarray(estimate.covariance, np.float64),
@@ -113,7 +112,7 @@ class TactileProcessor:
 
 
 def make_tactile_processor(inverter: Inverter, warmup_frame: np.ndarray | None = None) -> TactileProcessor:
-    """Adapt [`invert_frame`][] to `process_tactile` of [`run_pipeline`][].
+    """Adapt [`track_frame`][] to `process_tactile` of [`run_pipeline`][].
 
     **Arguments:**
 
