@@ -212,6 +212,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
             plot=args.plot,
             rectification=args.rectification,
             reference=args.reference,
+            replay_fps=args.replay_fps,
         )
     finally:
         for sink in sinks:
@@ -331,6 +332,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", action="store_true", help="live strip chart when a display exists")
     p.add_argument("--rectification", metavar="RECT.json", help="pixel-to-mm rectification of the camera")
     p.add_argument("--reference", metavar="IMAGE", help="no-contact frame (default: the first frames of the source)")
+    p.add_argument(
+        "--replay-fps", type=float, metavar="FPS", help="play a video file at this rate, as a camera would deliver it"
+    )
     p.set_defaults(run=_cmd_live)
 
     p = sub.add_parser(

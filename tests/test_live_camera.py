@@ -189,6 +189,20 @@ def test_video_file_in_order(tmp_path):
     assert items[-1].status == "end_of_stream"
 
 
+def test_video_replayed_at_a_camera_rate(tmp_path):
+    path = tmp_path / "clip.mp4"
+    write_video(path, 12)
+    # A replay is a camera: latest-frame delivery by default, every frame stamped when due.
+    assert VideoSource(path, replay_fps=30).latest
+    frames = frames_of(drain(VideoSource(path, replay_fps=400, latest=False)))
+    assert [f.index for f in frames] == list(range(12))
+    stamps = np.array([f.stamp for f in frames])
+    # Stamps are never earlier than their due time after the first (a lower bound only).
+    assert np.all(stamps - stamps[0] >= np.arange(12) / 400 - 2e-3)
+    with pytest.raises(ValueError, match="replay_fps"):
+        VideoSource(path, replay_fps=0)
+
+
 @pytest.mark.parametrize("keep", [0.1, 0.5, 0.9])
 def test_truncated_mp4_ends_cleanly(tmp_path, keep):
     # OpenCV's MP4 writer puts the index (moov atom) last: a truncated file cannot be opened.

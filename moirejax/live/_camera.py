@@ -395,6 +395,9 @@ class VideoSource(AbstractFrameSource):
         that stops ends the stream (`"truncated"` if it ended before its frame count).
     - `properties`: `cv2.CAP_PROP_*` values to set after opening (e.g. frame size, fps).
     - `timeout_ms`: open/read timeout passed to backends that honour it (FFmpeg).
+    - `replay_fps`: deliver a file's frames at this rate, as a camera would (each frame
+        grabbed at its due time, latest-frame delivery unless `latest` says otherwise):
+        to replay a recording in real time and measure latency as a camera would see it.
     - `latest`, `reconnect`, `queue_size`: see [`AbstractFrameSource`][].
     """
 
@@ -406,11 +409,18 @@ class VideoSource(AbstractFrameSource):
         live: bool | None = None,
         properties: Mapping[int, Real] | None = None,
         timeout_ms: int = 5000,
+        replay_fps: Real | None = None,
         latest: bool | None = None,
         reconnect: Reconnect = Reconnect(),
         queue_size: int = 4,
     ):
+        if replay_fps is not None and not replay_fps > 0:
+            raise ValueError(f"replay_fps must be positive, got {replay_fps}")
+        if replay_fps is not None and latest is None:
+            latest = True
         super().__init__(latest=latest, reconnect=reconnect, queue_size=queue_size)
+        self.replay_fps = replay_fps
+        self._started_at = 0.0
         if isinstance(spec, os.PathLike):
             spec = os.fspath(spec)
         self.spec: int | str = int(spec) if _is_device(spec) else spec
@@ -437,8 +447,13 @@ class VideoSource(AbstractFrameSource):
         self._cap = cap
         count = cap.get(cv2.CAP_PROP_FRAME_COUNT)
         self._frame_count = int(count) if math.isfinite(count) and count > 0 else 0
+        self._started_at = time.monotonic()
 
     def _read(self, index: int) -> tuple[Any, float] | None:
+        if self.replay_fps is not None:
+            due = self._started_at + index / float(self.replay_fps)
+            if (wait := due - time.monotonic()) > 0:
+                self._stop.wait(wait)
         if not self._cap.grab():
             if self.live:
                 return None

@@ -208,9 +208,16 @@ class GateER:
         z = self._demodulate(frame)
         base = self._baseline
         window = self.window_periods * self._period
+        # The window is many pixels wide, so its sums are smooth: evaluate them on a grid
+        # decimated by `step` (area-averaged first), four times cheaper per halving.
+        step = max(1, int(window // 4))
+        rows, cols = z.shape[1] // step, z.shape[2] // step
 
         def local(field):
-            return cv2.GaussianBlur(np.sum(field, axis=0).astype(np.float32), (0, 0), window)
+            field = np.sum(field, axis=0).astype(np.float32)
+            if step > 1:
+                field = cv2.resize(field[: rows * step, : cols * step], (cols, rows), interpolation=cv2.INTER_AREA)
+            return cv2.GaussianBlur(field, (0, 0), window / step)
 
         energy = local(np.abs(z) ** 2)
         fringe = local(np.abs(base) ** 2)
@@ -220,7 +227,7 @@ class GateER:
         overlap = np.maximum(local((z * base.conj()).real), 0.0)
         floor = 1e-6 * float(fringe.mean()) + 1e-12
         ratio = (energy - overlap**2 / np.maximum(fringe, floor)) / np.maximum(fringe, floor)
-        m = self._margin
+        m = -(-self._margin // step)
         interior = ratio[m : ratio.shape[0] - m, m : ratio.shape[1] - m] if m else ratio
         return float(interior.max()), z
 

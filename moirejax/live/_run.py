@@ -333,9 +333,10 @@ def _is_sim(spec: str) -> bool:
     return spec.strip().lower() == "sim"
 
 
-def open_source(spec: str) -> AbstractFrameSource:
+def open_source(spec: str, *, replay_fps: float | None = None) -> AbstractFrameSource:
     """A frame source from a spec: a camera index (`"0"`), a URL or GStreamer pipeline,
-    a folder of images, or a video file.
+    a folder of images, or a video file (played at `replay_fps` if given, else as fast as
+    it decodes).
 
     (`"sim"` is handled by [`run_live`][], which needs the device.)
 
@@ -347,7 +348,7 @@ def open_source(spec: str) -> AbstractFrameSource:
     if path.is_dir():
         return FolderSource(path)
     if path.is_file():
-        return VideoSource(path)
+        return VideoSource(path, replay_fps=replay_fps)
     raise FileNotFoundError(f"{spec}: not 'sim', a camera index, a URL, a folder or a video file")
 
 
@@ -431,6 +432,7 @@ def run_live(
     vision: bool = True,
     reference_frames: int = 5,
     record_fps: Real = 30.0,
+    replay_fps: float | None = None,
     stop: threading.Event | None = None,
 ) -> LiveSummary:
     """Run the live sensor: frames from `source_spec` to wrench records in `sinks`.
@@ -456,6 +458,7 @@ def run_live(
     - `sensor`: the simulated sensor for `"sim"` (default: one with the default script).
     - `vision`: in vision mode, name the colour seen through the sensor (colour sources).
     - `record_fps`: frame rate written into the recording.
+    - `replay_fps`: play a video file at this rate, as a camera would deliver it.
     - `stop`: a `threading.Event` that ends the run when set.
 
     **Returns:** the [`LiveSummary`][]; see [`format_summary`][].
@@ -472,7 +475,7 @@ def run_live(
             sensor = SimulatedSensor(device, n_frames=max_frames if max_frames else 240)
         source: AbstractFrameSource = sensor.source()
     else:
-        source = open_source(source_spec)
+        source = open_source(source_spec, replay_fps=replay_fps)
 
     reference_frame = None
     if inverter is None:

@@ -1,0 +1,83 @@
+"""Live pipeline latency and rate from a 512x512 MP4, as a camera would deliver it:
+`python benchmarks/live_latency.py --json`.
+
+Simulates a `sequence` recording (approach, press, twist, slide, release; `high`
+fidelity: fabrication deviations, noise, 8-bit) of a Mid unit, writes it as an MP4, and
+runs `run_live` on it twice: replayed at the camera rate (`--fps`, latest-frame delivery,
+so latency is decode-to-emit with nothing queued) and as fast as it decodes (in order,
+every frame: the sustainable rate). Prints median and p90 latency, frames/s, mode
+switches, statuses, whether the frames came out in order, compile time and peak memory.
+"""
+
+import argparse
+import json
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import moirejax as mj
+from moirejax._inversion import Inverter
+from moirejax._simulate import simulate_dataset
+from moirejax.live import FileSink, make_tactile_processor, run_live
+from moirejax.live._run import capture_reference, open_source
+
+
+def _run(device, video, inverter, replay_fps, out):
+    sink = FileSink(out)
+    try:
+        summary = run_live(device, str(video), sinks=[sink], inverter=inverter, replay_fps=replay_fps, vision=False)
+    finally:
+        sink.close()
+    records = [json.loads(line) for line in Path(out).read_text().splitlines()]
+    frames = [r["frame"] for r in records if r.get("frame") is not None]
+    return {
+        "latency_ms_median": summary.latency_ms_median,
+        "latency_ms_p90": summary.latency_ms_p90,
+        "fps": summary.fps,
+        "frames": summary.frames,
+        "dropped": summary.dropped,
+        "mode_switches": summary.mode_switches,
+        "status_counts": summary.status_counts,
+        "in_order": frames == sorted(frames),
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--json", action="store_true")
+    parser.add_argument("--frames", type=int, default=240)
+    parser.add_argument("--fps", type=float, default=60.0)
+    args = parser.parse_args(argv)
+
+    device = mj.preset("mid")
+    with tempfile.TemporaryDirectory() as tmp:
+        data = simulate_dataset(Path(tmp) / "sequence", device, "sequence", args.frames, seed=5, progress=False)
+        video = data.with_suffix(".mp4")
+        reference = capture_reference(open_source(str(video)), frames=5)
+        start = time.perf_counter()
+        inverter = Inverter(device, reference=reference)
+        make_tactile_processor(inverter, reference)
+        compile_s = time.perf_counter() - start
+        camera = _run(device, video, inverter, args.fps, Path(tmp) / "camera.jsonl")
+        flat_out = _run(device, video, inverter, None, Path(tmp) / "flat_out.jsonl")
+    result = {
+        "frame_shape": [device.height, device.width],
+        "camera_fps": args.fps,
+        "at_camera_rate": camera,
+        "as_fast_as_decoded": flat_out,
+        "median_ms": camera["latency_ms_median"],
+        "p90_ms": camera["latency_ms_p90"],
+        "sustained_fps": flat_out["fps"],
+        "compile_s": compile_s,
+        "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        for k, v in result.items():
+            print(f"{k:22s} {v}")
+
+
+if __name__ == "__main__":
+    main()
