@@ -251,7 +251,11 @@ def eqx_replace_tilt(device, tilt: np.ndarray):
 
 
 def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, progress: bool = True) -> dict:
-    """`moirejax evaluate`: invert a dataset with a (calibrated) device; metrics and plots."""
+    """`moirejax evaluate`: invert a dataset with a (calibrated) device; metrics and plots.
+
+    With a residual head, the metrics are of the corrected wrench and `physics_only`
+    holds those of the physical model alone (also in `metrics.json`).
+    """
     device, head = load_calibrated(device_path)
     dataset = Dataset(data)
     reference = dataset_reference(dataset)
@@ -262,6 +266,9 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
     truth = dataset.wrenches[idx]
     metrics = wrench_metrics(truth, wrench, result["sigma"])
     statuses = {Status(int(s)).name.lower(): int(np.sum(result["status"] == s)) for s in np.unique(result["status"])}
+    extra: dict = {"status_counts": statuses}
+    if head is not None:
+        extra["physics_only"] = wrench_metrics(truth, result["wrench"], result["sigma"])
     _write_report(
         Path(out_dir),
         metrics,
@@ -269,9 +276,9 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
         wrench,
         result["sigma"],
         title=f"evaluation on {Path(data).name}",
-        extra={"status_counts": statuses},
+        extra=extra,
     )
-    return metrics
+    return {**metrics, **({"physics_only": extra["physics_only"]} if head is not None else {})}
 
 
 def transfer(

@@ -186,8 +186,12 @@ print(f"calibrated in {time.perf_counter() - start:.0f} s; wrote {fit_json.name}
 report = Path(summary["report"])
 written = json.loads((report / "metrics.json").read_text())
 print("cost per round:", [f"{h['cost']:.4g}" for h in written["history"]])
+head_name = json.loads(fit_json.read_text())["calibration"]["residual_head"]
 print(format_metrics(summary["physics_only"], title="\nphysics only, calibration frames (in-sample)"))
-print(format_metrics(summary["metrics"], title="\nwith the residual head, calibration frames (in-sample)"))
+if head_name is not None:
+    print(format_metrics(summary["metrics"], title="\nwith the residual head, calibration frames (in-sample)"))
+else:
+    print(f"\nno residual head: {written['residual_head']}")
 
 # %% [markdown]
 # The in-sample parity plot (estimate against reference per axis, with the inversion's 95%
@@ -236,7 +240,8 @@ tilt = np.round(written["tilt_matrix"], 5).tolist()
 print(f"tilt matrix (Eq. 9, N·m per mm): {tilt}, R² {written['tilt_matrix_r2']:.3f}")
 for n_train, r2 in written["ridge_baseline_r2_heldout"].items():
     print(f"ridge baseline on {n_train} frames, R² on the rest: " + ", ".join(f"{a} {r2[a]:.3f}" for a in AXES))
-print(f"residual head training: {written['residual_head']}")
+if head_name is not None:
+    print(f"residual head training: {written['residual_head']}")
 
 # %% [markdown]
 # ## 4. After calibration, on the held-out loads
@@ -246,23 +251,16 @@ print(f"residual head training: {written['residual_head']}")
 # `physics_only`. Without a head the two are the same.
 
 # %%
-fit = json.loads(fit_json.read_text())
-print(f"residual head: {fit['calibration']['residual_head']}")
 after = evaluate(fit_json, heldout_dir, work / "after")
-if fit["calibration"]["residual_head"] is None:
-    physics = after
-elif "physics_only" in after:
-    physics = after["physics_only"]
-else:
-    # An `evaluate` that reports the corrected wrench only: score a copy of the fit without its head.
-    fit["calibration"]["residual_head"] = None
-    (work / "fit_physics.json").write_text(json.dumps(fit))
-    physics = evaluate(work / "fit_physics.json", heldout_dir, work / "after_physics")
+physics = after["physics_only"] if head_name is not None else after
 print(format_metrics(physics, title="calibrated, physics only, held-out mixed loads"))
-print(format_metrics(after, title="\ncalibrated with the residual head, held-out mixed loads"))
+if head_name is not None:
+    print(format_metrics(after, title="\ncalibrated with the residual head, held-out mixed loads"))
 
 # %%
-columns = {"nominal design": before, "calibrated, physics only": physics, "calibrated + head": after}
+columns = {"nominal design": before, "calibrated, physics only": physics}
+if head_name is not None:
+    columns["calibrated + head"] = after
 header = "| axis | " + " | ".join(f"{c}: R² / MAE" for c in columns) + " |"
 rows = [header, "|---|" + "---|" * len(columns)]
 for j, axis in enumerate(AXES):
@@ -275,7 +273,8 @@ display(Markdown("\n".join(rows)))
 fig, ax = plt.subplots(figsize=(9, 3.5))
 width = 0.8 / len(columns)
 for k, (label, m) in enumerate(columns.items()):
-    ax.bar(np.arange(6) + (k - 1) * width, [max(m["r2"][a], -0.5) for a in AXES], width, label=label)
+    offset = (k - (len(columns) - 1) / 2) * width
+    ax.bar(np.arange(6) + offset, [max(m["r2"][a], -0.5) for a in AXES], width, label=label)
 ax.set_xticks(np.arange(6), AXES)
 ax.axhline(1.0, color="k", lw=0.8)
 ax.set_ylim(-0.5, 1.05)
