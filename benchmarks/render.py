@@ -27,15 +27,10 @@ import numpy as np
 import moirejax as mj
 from moirejax._contact import Contact
 from moirejax._optics import (
-    background_radiance,
-    binary_harmonics,
     camera_response,
-    gaussian_mtf,
-    image_coordinates,
-    line_transmission,
     separable_gaussian_blur,
 )
-from moirejax._render import _upsample, deformation, grating_phases, render_frame
+from moirejax._render import _upsample, deformation, render_frame, scene_radiance
 
 
 def _peak_mb() -> float:
@@ -116,18 +111,7 @@ def bench_stages(size: int, px_per_mm: float, repeats: int, mechanics: int) -> d
     upsample_fn = eqx.filter_jit(lambda s: (_upsample(s.displacement, shape), _upsample(s.light, shape)))
     displacement, light = upsample_fn(state)
 
-    def gratings(d, displacement, light):
-        x, y = image_coordinates(d)
-        phase1, phase2 = grating_phases(d, x, y, displacement)
-        k1 = jnp.linalg.norm(d.apparent_upper_wavevectors()[0])
-        harmonic = jnp.arange(d.harmonics + 1, dtype=float)
-        c1 = binary_harmonics(d.duty1, d.harmonics) * gaussian_mtf(harmonic * k1, d.optics.defocus)
-        c2 = binary_harmonics(d.duty2, d.harmonics)
-        upper = jnp.prod(jax.vmap(line_transmission, in_axes=(0, None))(phase1, c1), axis=0)
-        reference = jnp.prod(jax.vmap(line_transmission, in_axes=(0, None))(phase2, c2), axis=0)
-        return reference * (background_radiance(d, x, y) * upper + light)
-
-    gratings_fn = eqx.filter_jit(gratings)
+    gratings_fn = eqx.filter_jit(scene_radiance)
     radiance = gratings_fn(device, displacement, light)
     optics_fn = eqx.filter_jit(lambda d, r: camera_response(d, separable_gaussian_blur(r, d.optics.psf_sigma), 1.0))
     stages = {

@@ -409,9 +409,11 @@ class Inverter(eqx.Module):
         return y, self.residuals(y, args), self._data_jacobian(y, args[0]), steps, sol.result
 
     def _best_start(self, candidates, args):
+        """The candidate with the lowest cost, and that cost."""
         costs = jnp.stack([jnp.sum(self.residuals(c, args) ** 2) for c in candidates])
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
-        return jnp.stack(candidates)[jnp.argmin(costs)]
+        best = jnp.argmin(costs)
+        return jnp.stack(candidates)[best], costs[best]
 
     def _finish(self, frame, finite, observed, r_zero, noise, y, r, jacobian, steps, result, start):
         """Covariance, contact test and status of a solution `y` with residual `r`."""
@@ -482,7 +484,7 @@ class Inverter(eqx.Module):
             # Second tier: the same iterations with a Jacobian evaluated afresh at the best
             # point so far (about one Levenberg–Marquardt step's cost).
             chord_ok = jnp.all(jnp.isfinite(y_chord)) & usable
-            start = self._best_start([cold, warm, jnp.where(chord_ok, y_chord, cold)], args)
+            start, start_cost = self._best_start([cold, warm, jnp.where(chord_ok, y_chord, cold)], args)
             y_fresh, r_fresh, j_fresh, fresh_steps, fresh_ok = self._chord(
                 start, self._data_jacobian(start, observed), args
             )
@@ -491,7 +493,7 @@ class Inverter(eqx.Module):
                 return y_fresh, r_fresh, j_fresh, chord_steps + fresh_steps, optx.RESULTS.successful
 
             def levenberg_marquardt(_):
-                better = jnp.sum(r_fresh**2) < jnp.sum(self.residuals(start, args) ** 2)
+                better = jnp.sum(r_fresh**2) < start_cost
                 return self._levenberg_marquardt(
                     jnp.where(better & jnp.all(jnp.isfinite(y_fresh)), y_fresh, start), args
                 )
@@ -517,7 +519,7 @@ class Inverter(eqx.Module):
             # Warm start when it explains the frame better than the cold guess does: true
             # for a camera stream, false after a jump to an unrelated load.
             usable = jnp.all(jnp.isfinite(init))
-            y0 = self._best_start([cold, jnp.where(usable, init, cold)], args)
+            y0, _ = self._best_start([cold, jnp.where(usable, init, cold)], args)
         y, r, jacobian, steps, result = self._levenberg_marquardt(y0, args)
         return self._finish(frame, finite, observed, r_zero, noise, y, r, jacobian, steps, result, y0)[0]
 

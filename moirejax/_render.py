@@ -97,6 +97,17 @@ def render_deformed(
     `displacement` `(ux, uy, w)` (mm) and `light` are sampled at the surface point on
     the undeformed ray of every pixel.
     """
+    radiance = separable_gaussian_blur(scene_radiance(device, displacement, light), device.optics.psf_sigma)
+    return camera_response(device, radiance, exposure)
+
+
+def scene_radiance(
+    device: Device, displacement: Float[Array, "3 h w"], light: Float[Array, "h w"]
+) -> Float[Array, "h w"]:
+    """Radiance behind the reference grating at every pixel, before the lens PSF and the camera.
+
+    Arguments as for [`render_deformed`][].
+    """
     x, y = image_coordinates(device)
     phase1, phase2 = grating_phases(device, x, y, displacement)
     # The far grating is out of focus: each harmonic is attenuated by the defocus MTF.
@@ -106,9 +117,7 @@ def render_deformed(
     c2 = binary_harmonics(device.duty2, device.harmonics)
     upper = jnp.prod(jax.vmap(line_transmission, in_axes=(0, None))(phase1, c1), axis=0)
     reference = jnp.prod(jax.vmap(line_transmission, in_axes=(0, None))(phase2, c2), axis=0)
-    radiance = reference * (background_radiance(device, x, y) * upper + light)
-    radiance = separable_gaussian_blur(radiance, device.optics.psf_sigma)
-    return camera_response(device, radiance, exposure)
+    return reference * (background_radiance(device, x, y) * upper + light)
 
 
 @eqx.filter_jit
