@@ -6,7 +6,8 @@ fidelity: fabrication deviations, noise, 8-bit) of a Mid unit, writes it as an M
 runs `run_live` on it twice: replayed at the camera rate (`--fps`, latest-frame delivery,
 so latency is decode-to-emit with nothing queued) and as fast as it decodes (in order,
 every frame: the sustainable rate). Prints median and p90 latency, frames/s, mode
-switches, statuses, whether the frames came out in order, compile time and peak memory.
+switches and their lag in frames behind the recording's contact onset and release (from
+the in-order run), statuses, whether the frames came out in order, compile time and peak memory.
 """
 
 import argparse
@@ -16,14 +17,30 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 import moirejax as mj
+from moirejax._dataset import Dataset
 from moirejax._inversion import Inverter
 from moirejax._simulate import simulate_dataset
 from moirejax.live import FileSink, make_tactile_processor, run_live
 from moirejax.live._run import capture_reference, open_source
 
 
-def _run(device, video, inverter, replay_fps, out):
+def _switch_lags(records, contact) -> dict:
+    """Frames from each recorded contact onset/release to the gate's switch (+ = late)."""
+    mode = {r["frame"]: r["mode"] == "tactile" for r in records if r["status"] != "end_of_stream"}
+    frames = sorted(mode)
+    gate = [f for a, f in zip(frames, frames[1:]) if mode[a] != mode[f]]
+    truth = [int(i) + 1 for i in np.flatnonzero(np.diff(contact.astype(int)))]
+    return {
+        "contact_changes": truth,
+        "gate_switches": gate,
+        "lags_frames": [min((g - t for g in gate), key=abs) if gate else None for t in truth],
+    }
+
+
+def _run(device, video, inverter, replay_fps, out, contact):
     sink = FileSink(out)
     try:
         summary = run_live(device, str(video), sinks=[sink], inverter=inverter, replay_fps=replay_fps, vision=False)
@@ -40,6 +57,7 @@ def _run(device, video, inverter, replay_fps, out):
         "mode_switches": summary.mode_switches,
         "status_counts": summary.status_counts,
         "in_order": frames == sorted(frames),
+        "mode_switch_lag": _switch_lags(records, contact),
     }
 
 
@@ -53,14 +71,15 @@ def main(argv=None):
     device = mj.preset("mid")
     with tempfile.TemporaryDirectory() as tmp:
         data = simulate_dataset(Path(tmp) / "sequence", device, "sequence", args.frames, seed=5, progress=False)
+        contact = Dataset(data).contact
         video = data.with_suffix(".mp4")
         reference = capture_reference(open_source(str(video)), frames=5)
         start = time.perf_counter()
         inverter = Inverter(device, reference=reference)
         make_tactile_processor(inverter, reference)
         compile_s = time.perf_counter() - start
-        camera = _run(device, video, inverter, args.fps, Path(tmp) / "camera.jsonl")
-        flat_out = _run(device, video, inverter, None, Path(tmp) / "flat_out.jsonl")
+        camera = _run(device, video, inverter, args.fps, Path(tmp) / "camera.jsonl", contact)
+        flat_out = _run(device, video, inverter, None, Path(tmp) / "flat_out.jsonl", contact)
     result = {
         "frame_shape": [device.height, device.width],
         "camera_fps": args.fps,
@@ -69,6 +88,7 @@ def main(argv=None):
         "median_ms": camera["latency_ms_median"],
         "p90_ms": camera["latency_ms_p90"],
         "sustained_fps": flat_out["fps"],
+        "mode_switch_lag_frames": flat_out["mode_switch_lag"]["lags_frames"],
         "compile_s": compile_s,
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }

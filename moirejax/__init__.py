@@ -3,7 +3,11 @@
 import importlib.metadata
 
 from ._band_model import predicted_bands as predicted_bands
-from ._calibration import fit_physical_parameters as fit_physical_parameters, Recipe as Recipe
+from ._calibration import (
+    fit_physical_parameters as fit_physical_parameters,
+    load_recipe as load_recipe,
+    Recipe as Recipe,
+)
 from ._contact import Contact as Contact, surface_grid as surface_grid, surface_tractions as surface_tractions
 from ._dataset import (
     Dataset as Dataset,

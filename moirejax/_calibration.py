@@ -9,12 +9,17 @@ fit alternates two least-squares problems, each solved with optimistix:
    (Levenberg–Marquardt; a dense Jacobian of a few hundred thousand rows by ~9 columns);
 2. the latents of every frame, with the parameters fixed (a vmapped 4-unknown solve).
 
-Parameters that must stay positive are fitted in log space. Their uncertainties come
-from the Gauss–Newton information of step 1 at the end, scaled by the residual variance.
+Parameters that must stay positive are fitted in log space. A recipe may put a Gaussian
+prior on a parameter around its starting value; its residual is scaled by the data's own
+noise level (a robust estimate from the residuals), so the prior weighs as many frames'
+worth of evidence whatever the camera noise. The uncertainties come from the
+Gauss–Newton information of step 1 at the end (prior included), scaled by the residual
+variance.
 """
 
 import dataclasses
 import math
+from pathlib import Path
 from typing import Any
 
 import equinox as eqx
@@ -26,47 +31,86 @@ import optimistix as optx
 
 from ._band_model import complex_ratio, predicted_bands
 from ._contact import Contact, NMM_PER_NM
-from ._device import Device
+from ._device import Device, Elastomer, Optics
+from ._fileio import DataError, read_json
 from ._inversion import Inverter
 from ._observables import FringeFields
 
 
 @dataclasses.dataclass(frozen=True)
 class Recipe:
-    """What a calibration fits and how.
+    """What a calibration fits and how; the files in `fits/recipes/` hold the named ones.
 
-    - `free`: dotted names of [`Device`][] fields to fit. The grating geometry is left
-      out by default: the moiré wavevector measured on the reference frame fixes the
-      apparent upper pitch and angle, and what it leaves (the common scale of both
-      pitches, the separation) is degenerate with the stiffness in every load response.
-      Freeing them let a 200-frame fit wander 28% along that valley and generalise worse.
+    - `name`, `description`: what the recipe is for.
+    - `free`: dotted names of [`Device`][] fields to fit.
     - `log`: the subset fitted in log space (positive quantities).
+    - `prior_sd`: a Gaussian prior on a free parameter around its starting value (the
+      nominal design, or the unit a transfer starts from), as a standard deviation in
+      the fitted coordinate (relative for `log` ones). Parameters without one are free.
     - `rounds`: alternations of parameter and latent solves.
     - `parameter_frames`: frames used in each parameter solve (a random subset).
     - `parameter_steps`, `latent_steps`: solver step limits.
     """
 
-    name: str = "unit"
-    free: tuple[str, ...] = ("elastomer.E", "optics.glow_gain", "optics.rim_gain", "optics.gain", "optics.defocus")
-    log: tuple[str, ...] = ("elastomer.E", "optics.glow_gain", "optics.rim_gain", "optics.gain", "optics.defocus")
+    name: str
+    free: tuple[str, ...]
+    log: tuple[str, ...] = ()
+    prior_sd: tuple[tuple[str, float], ...] = ()
     rounds: int = 3
     parameter_frames: int = 48
     parameter_steps: int = 12
     latent_steps: int = 20
+    description: str = ""
+
+    def __post_init__(self):
+        for name in self.free:
+            head, _, field = name.partition(".")
+            owner = Device if not field else {"elastomer": Elastomer, "optics": Optics}.get(head)
+            if owner is None or (field or head) not in {f.name for f in dataclasses.fields(owner)}:
+                raise ValueError(f"recipe {self.name!r}: {name!r} is not a Device parameter")
+        unknown = set(self.log) - set(self.free)
+        unknown |= {n for n, _ in self.prior_sd} - set(self.free)
+        if unknown:
+            raise ValueError(f"recipe {self.name!r}: {sorted(unknown)} are not among its free parameters")
+        if any(sd <= 0 for _, sd in self.prior_sd):
+            raise ValueError(f"recipe {self.name!r}: prior standard deviations must be positive")
+
+    def replace(self, **changes) -> "Recipe":
+        return dataclasses.replace(self, **changes)
 
     def to_json(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        obj = dataclasses.asdict(self)
+        obj["free"], obj["log"] = list(self.free), list(self.log)
+        obj["prior_sd"] = dict(self.prior_sd)
+        return obj
+
+    @classmethod
+    def from_json(cls, obj: dict[str, Any]) -> "Recipe":
+        fields = dict(obj)
+        fields["free"], fields["log"] = tuple(obj["free"]), tuple(obj.get("log", ()))
+        fields["prior_sd"] = tuple(obj.get("prior_sd", {}).items())
+        return cls(**fields)
 
 
-# Transfer keeps the design-level split between the gratings and refits what differs
-# from unit to unit.
-TRANSFER_RECIPE = Recipe(
-    name="transfer",
-    free=("elastomer.E", "optics.glow_gain", "optics.gain"),
-    log=("elastomer.E", "optics.glow_gain", "optics.gain"),
-    rounds=3,
-    parameter_frames=20,
-)
+RECIPE_DIR = Path(__file__).resolve().parent / "fits" / "recipes"
+
+
+def load_recipe(spec: "str | Path | Recipe") -> Recipe:
+    """A [`Recipe`][]: itself, a named one from `fits/recipes/` (`"unit"`, `"transfer"`),
+    or a recipe JSON file (validated against `data_schema/recipe.schema.json`)."""
+    if isinstance(spec, Recipe):
+        return spec
+    path = Path(spec)
+    if not path.suffix and (RECIPE_DIR / f"{spec}.json").exists():
+        path = RECIPE_DIR / f"{spec}.json"
+    if not path.exists():
+        named = ", ".join(sorted(p.stem for p in RECIPE_DIR.glob("*.json")))
+        raise DataError(f"{spec}: no such recipe file or named recipe (named: {named})")
+    obj = read_json(path, "recipe")
+    try:
+        return Recipe.from_json(obj)
+    except ValueError as e:
+        raise DataError(f"{path}: {e}") from None
 
 
 def _getter(name: str):
@@ -106,7 +150,7 @@ class _Problem(eqx.Module):
     recipe_log: tuple[str, ...] = eqx.field(static=True)
 
     def device(self, theta):
-        recipe = Recipe(free=self.recipe_free, log=self.recipe_log)
+        recipe = Recipe(name="fit", free=self.recipe_free, log=self.recipe_log)
         return with_parameters(self.inverter.device, recipe, theta)
 
     def frame_residuals(self, theta, latent, wrench, observed: FringeFields, model_reference: FringeFields):
@@ -143,8 +187,8 @@ class _Problem(eqx.Module):
 
 
 @eqx.filter_jit
-def _parameter_solve(problem: _Problem, theta, latents, wrenches, observed, steps: int):
-    def residuals(theta, args):
+def _parameter_solve(problem: _Problem, theta, latents, wrenches, observed, prior_mean, prior_weight, steps: int):
+    def data_residuals(theta, args):
         latents, wrenches, observed = args
         reference = problem.model_reference(theta)
         per_frame = jax.vmap(problem.frame_residuals, in_axes=(None, 0, 0, 0, None))(
@@ -152,10 +196,17 @@ def _parameter_solve(problem: _Problem, theta, latents, wrenches, observed, step
         )
         return per_frame.ravel()
 
+    data = (latents, wrenches, observed)
+    noise = jax.lax.stop_gradient(jnp.median(jnp.abs(data_residuals(theta, data))) / 0.6745)
+
+    def residuals(theta, args):
+        prior = (theta - prior_mean) * prior_weight * noise
+        return jnp.concatenate([data_residuals(theta, args), prior])
+
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-7, linear_solver=lx.QR())
-    sol = optx.least_squares(residuals, solver, theta, args=(latents, wrenches, observed), max_steps=steps, throw=False)
-    r = residuals(sol.value, (latents, wrenches, observed))
-    J = jax.jacfwd(residuals)(sol.value, (latents, wrenches, observed))
+    sol = optx.least_squares(residuals, solver, theta, args=data, max_steps=steps, throw=False)
+    r = data_residuals(sol.value, data)
+    J = jax.jacfwd(residuals)(sol.value, data)
     dof = r.size - theta.size - 4 * latents.shape[0]
     covariance = jnp.linalg.pinv(J.T @ J, hermitian=True) * jnp.sum(r**2) / dof
     return sol.value, covariance, jnp.sum(r**2)
@@ -190,7 +241,7 @@ def fit_physical_parameters(
     reference: np.ndarray,
     frames: np.ndarray,
     wrenches: np.ndarray,
-    recipe: Recipe = Recipe(),
+    recipe: "Recipe | str | Path" = "unit",
     *,
     seed: int = 0,
     progress: bool = True,
@@ -202,13 +253,15 @@ def fit_physical_parameters(
     - `nominal`: the starting [`Device`][] (the design, or another unit's fit).
     - `reference`: a no-contact frame of the unit (the mean of several is better).
     - `frames`: `(n, h, w)` frames in contact; `wrenches`: `(n, 6)` reference readings.
-    - `recipe`: the [`Recipe`][].
+    - `recipe`: a [`Recipe`][] or anything [`load_recipe`][] takes. Its priors centre on
+      the parameters of `nominal`.
 
     **Returns:** a [`CalibrationResult`][] with the fitted device and 1-sigma uncertainties
     of the free parameters (in their own units).
     """
     from tqdm.auto import tqdm
 
+    recipe = load_recipe(recipe)
     inverter = Inverter(nominal, reference=reference)
     dtype = np.asarray(inverter.device.p1).dtype
     observed = jax.lax.map(inverter.observe, jnp.asarray(frames, dtype=dtype))
@@ -216,6 +269,9 @@ def fit_physical_parameters(
     latents = jnp.asarray(latents_from_wrench(np.asarray(wrenches)), dtype=dtype)
     problem = _Problem(inverter, recipe.free, recipe.log)
     theta = parameter_vector(inverter.device, recipe)
+    prior_mean = theta
+    sd = dict(recipe.prior_sd)
+    prior_weight = jnp.asarray([1.0 / sd[n] if n in sd else 0.0 for n in recipe.free], dtype=dtype)
     rng = np.random.default_rng(seed)
     n = len(frames)
     history = []
@@ -227,7 +283,14 @@ def fit_physical_parameters(
         subset = np.sort(rng.choice(n, size=min(n, recipe.parameter_frames), replace=False))
         observed_subset = jax.tree_util.tree_map(lambda a, s=subset: a[s], observed)
         theta, covariance, cost = _parameter_solve(
-            problem, theta, latents[subset], wrenches_j[subset], observed_subset, recipe.parameter_steps
+            problem,
+            theta,
+            latents[subset],
+            wrenches_j[subset],
+            observed_subset,
+            prior_mean,
+            prior_weight,
+            recipe.parameter_steps,
         )
         bar.update()
         latents = _latent_solve(problem, theta, latents, wrenches_j, observed, recipe.latent_steps)

@@ -155,16 +155,19 @@ def _cmd_invert(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from ._calibration import Recipe
+    from ._calibration import load_recipe
     from ._metrics import format_metrics
     from ._workflows import calibrate
 
+    recipe = load_recipe(args.recipe)
+    if args.rounds is not None:
+        recipe = recipe.replace(rounds=args.rounds)
     summary = calibrate(
         args.device,
         args.data,
         args.out,
         max_frames=args.max_frames,
-        recipe=Recipe(rounds=args.rounds),
+        recipe=recipe,
         progress=not args.quiet,
     )
     print(format_metrics(summary["physics_only"], title="physics only (calibration frames)"))
@@ -173,7 +176,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     for p in summary["parameters"]:
         true = f"  true {p['true']:.5g}" if "true" in p else ""
         print(f"  {p['parameter']:20s} {p['nominal']:.5g} -> {p['fitted']:.5g} +- {p['sd']:.2g}{true}")
-    print(f"ridge baseline held-out R2 by training frames: {summary['baselines']}")
+    print("ridge baseline, cross-validated R2 by training frames:")
+    for n_train, r2 in summary["baselines"].items():
+        print(f"  {n_train:>4s}: " + "  ".join(f"{axis} {value:.3f}" for axis, value in r2.items()))
     print(f"wrote {args.out} and {summary['report']}/")
     return 0
 
@@ -191,8 +196,17 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_transfer(args: argparse.Namespace) -> int:
     from ._workflows import transfer
 
-    summary = transfer(args.from_, args.data, args.out, max_frames=args.max_frames, progress=not args.quiet)
+    summary = transfer(
+        args.from_, args.data, args.out, max_frames=args.max_frames, recipe=args.recipe, progress=not args.quiet
+    )
     print(f"refitted {len(summary['uncertainty'])} parameters on {summary['frames']} frames; wrote {args.out}")
+    check = summary["residual_head_check"]
+    if check is not None:
+        verdict = "kept" if check["kept"] else "dropped (it made the new unit's frames worse)"
+        print(
+            f"residual head {verdict}: scaled MSE {check['scaled_mse_with_head']:.3g} with, "
+            f"{check['scaled_mse_without_head']:.3g} without"
+        )
     return 0
 
 
@@ -299,7 +313,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, metavar="DATASET")
     p.add_argument("--out", required=True, metavar="FIT.json", help="fitted device; head and report go beside it")
     p.add_argument("--max-frames", type=int, default=500)
-    p.add_argument("--rounds", type=int, default=3, help="alternations of parameter and latent solves")
+    p.add_argument(
+        "--recipe", default="unit", metavar="NAME|FILE", help="what to fit: a recipe of fits/recipes/ or a JSON file"
+    )
+    p.add_argument("--rounds", type=int, help="alternations of parameter and latent solves (default: the recipe's)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(run=_cmd_calibrate)
 
@@ -315,6 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, metavar="DATASET", help="frames of the new unit")
     p.add_argument("--out", required=True, metavar="FIT_B.json")
     p.add_argument("--max-frames", type=int, default=20)
+    p.add_argument("--recipe", default="transfer", metavar="NAME|FILE", help="what to refit (default: transfer)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(run=_cmd_transfer)
 

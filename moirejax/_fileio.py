@@ -13,6 +13,11 @@ import jsonschema
 SCHEMA_DIR = Path(__file__).resolve().parent / "data_schema"
 
 
+# The process umask, read once: os.umask can only be read by setting it.
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
+
 class DataError(ValueError):
     """A file does not match what moirejax expects. The message names the file and field."""
 
@@ -22,12 +27,18 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 
     The bytes go to a temporary file in the same directory (so the final rename
     stays on one filesystem), are flushed to disk, and then replace `path`.
-    An interrupt before the rename leaves `path` untouched.
+    An interrupt before the rename leaves `path` untouched. The file gets the mode a plain
+    `open` would give it (an existing file keeps its own), not the temporary's 0600.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        mode = path.stat().st_mode & 0o777
+    except FileNotFoundError:
+        mode = 0o666 & ~_UMASK
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()

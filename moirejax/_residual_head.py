@@ -53,8 +53,10 @@ class ResidualHead(eqx.Module):
 
     def correct(self, wrench: np.ndarray, x0: np.ndarray, y0: np.ndarray, radius: np.ndarray) -> np.ndarray:
         """Corrected wrenches `(n, 6)` in N and N·m."""
-        features = jnp.asarray(head_features(wrench, x0, y0, radius), dtype=float)
-        return wrench + np.asarray(jax.vmap(self)(features)) * WRENCH_SCALE
+        # In the head's own precision: a head saved in float32 also corrects float64 runs.
+        dtype = self.mlp.layers[0].weight.dtype
+        features = jnp.asarray(head_features(wrench, x0, y0, radius), dtype=dtype)
+        return wrench + np.asarray(jax.vmap(self)(features), dtype=np.float64) * WRENCH_SCALE
 
 
 def train_residual_head(
@@ -118,12 +120,17 @@ def save_head(path: str | Path, head: ResidualHead) -> None:
     buffer = io.BytesIO()
     eqx.tree_serialise_leaves(buffer, head)
     atomic_write_bytes(path, buffer.getvalue())
-    atomic_write_text(str(path) + ".json", json.dumps({"width": head.width, "depth": head.depth}) + "\n")
+    dtype = str(jax.tree_util.tree_leaves(eqx.filter(head, eqx.is_inexact_array))[0].dtype)
+    meta = {"width": head.width, "depth": head.depth, "dtype": dtype}
+    atomic_write_text(str(path) + ".json", json.dumps(meta) + "\n")
 
 
 def load_head(path: str | Path) -> ResidualHead:
-    """Read a head written by [`save_head`][]."""
+    """Read a head written by [`save_head`][], in the precision it was saved in (a head
+    trained in float32 loads under `jax_enable_x64` too)."""
     meta = json.loads(Path(str(path) + ".json").read_text())
     skeleton = ResidualHead(jax.random.PRNGKey(0), width=meta["width"], depth=meta["depth"])
+    dtype = jnp.dtype(meta.get("dtype", "float32"))
+    skeleton = jax.tree_util.tree_map(lambda x: x.astype(dtype) if eqx.is_inexact_array(x) else x, skeleton)
     with open(path, "rb") as f:
         return eqx.tree_deserialise_leaves(f, skeleton)

@@ -25,8 +25,9 @@
 # residual head.
 #
 # `transfer(fit_a_json, data_b, fit_b_json, max_frames=20)` starts from unit A's fitted device and
-# refits, on at most 20 frames of unit B, only what varies from unit to unit (`TRANSFER_RECIPE`:
-# stiffness, glow gain, optical gain), keeping A's residual head. This notebook compares, on
+# refits, on at most 20 frames of unit B, only what varies from unit to unit (the `transfer` recipe of
+# `fits/recipes/transfer.json`: stiffness, glow gain, optical gain, with priors around A's values),
+# keeping A's residual head. This notebook compares, on
 # held-out mixed loads of unit B:
 #
 # 1. **no transfer**: unit A's calibration applied to unit B as it is;
@@ -49,7 +50,7 @@ import numpy as np
 from IPython.display import display, Image, Markdown
 
 import moirejax as mj
-from moirejax._calibration import Recipe, TRANSFER_RECIPE
+from moirejax._calibration import load_recipe
 from moirejax._dataset import Dataset
 from moirejax._metrics import AXES, format_metrics, wrench_metrics
 from moirejax._simulate import simulate_dataset
@@ -67,10 +68,11 @@ TRANSFER_FRAMES = 20
 # parameters on exactly as many frames as the transfer uses, so that both fits run the same
 # compiled solver; at full size it gets the default recipe on a full session.
 N_CALIBRATION_A = TRANSFER_FRAMES + 2 if SMOKE else 300
+TRANSFER_RECIPE = load_recipe("transfer")  # fits/recipes/transfer.json
 RECIPE_A = (
-    Recipe(free=TRANSFER_RECIPE.free, log=TRANSFER_RECIPE.log, rounds=1, parameter_frames=TRANSFER_FRAMES)
+    TRANSFER_RECIPE.replace(name="unit-smoke", rounds=1, parameter_frames=TRANSFER_FRAMES)
     if SMOKE
-    else Recipe()
+    else load_recipe("unit")
 )
 # Unit B: a pool of paper-protocol frames (the transfer takes 20 of them, the ridge baseline up to
 # 500) and a held-out session of mixed loads.
@@ -84,7 +86,7 @@ nominal_json = work / "mid.json"
 mj.save_device(nominal_json, nominal)
 print(f"working folder {work}")
 print(f"unit A: {N_CALIBRATION_A} calibration frames; unit B: pool of {N_POOL_B}, {N_HELDOUT_B} held out")
-print(f"transfer recipe: {TRANSFER_RECIPE}")
+print(f"transfer recipe: {TRANSFER_RECIPE.to_json()}")
 
 # %% [markdown]
 # ## 1. Two units of one design
@@ -149,7 +151,7 @@ print(f"residual head of unit A: {json.loads(fit_a_json.read_text())['calibratio
 #
 # `transfer` opens unit B's frames, takes its no-contact reference from the contact-free ones,
 # picks at most `max_frames` frames in contact and runs the same alternating fit as calibration,
-# starting from unit A's device, with `TRANSFER_RECIPE`. The optical registration of B's gratings
+# starting from unit A's device, with the `transfer` recipe. The optical registration of B's gratings
 # (phases) and its apparent upper pitch and angle come from B's own reference frame, as in every
 # inversion; the refit adjusts stiffness and light. A's residual head is copied beside B's device.
 

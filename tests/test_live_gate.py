@@ -129,3 +129,32 @@ def test_rejects_bad_frames():
         gate.update(np.zeros((32, 32), np.float32))
     with pytest.raises(ValueError, match="2D"):
         gate.update(np.zeros((64, 64, 3), np.float32))
+
+
+def test_device_gate_follows_contact_on_a_sequence_dataset(tmp_path):
+    """On a high-fidelity `sequence` recording (noise, 8 bits, fabrication deviations) the
+    device's gate switches within 2 frames of the recorded contact onset and release, and a
+    slow illumination drift over the same unit's contact-free frames never switches it."""
+    import moirejax as mj
+    from moirejax._dataset import Dataset
+    from moirejax._simulate import simulate_dataset
+    from moirejax.live import make_gate
+
+    device = mj.preset("mid")
+    data = Dataset(simulate_dataset(tmp_path / "seq", device, "sequence", 120, seed=5, progress=False))
+    frames = [np.round(data.frame(i) * 255) / 255 for i in range(len(data))]
+    gate = make_gate(device)
+    tactile = np.array([gate.update(frame).mode == "tactile" for frame in frames])
+    truth = data.contact.astype(bool)
+    onset, release = np.flatnonzero(np.diff(truth.astype(int))) + 1
+    gate_on, gate_off = np.flatnonzero(np.diff(tactile.astype(int))) + 1
+    assert abs(gate_on - onset) <= 2 and abs(gate_off - release) <= 2, (onset, release, gate_on, gate_off)
+
+    rows, cols = np.mgrid[0 : device.height, 0 : device.width] / device.height
+    rest = [f for f, c in zip(frames, truth) if not c]
+    gate = make_gate(device)
+    for i in range(160):
+        s = i / 160
+        light = (1 - 0.3 * s) * (1 + 0.2 * s * (cols - 0.5) + 0.1 * np.sin(2 * np.pi * (rows + s)))
+        decision = gate.update(np.clip(np.round(rest[i % len(rest)] * light * 255) / 255, 0, 1))
+        assert decision.mode == "vision", (i, decision)

@@ -12,6 +12,7 @@ import pytest
 
 import moirejax as mj
 from moirejax._contact import Contact
+from moirejax._fileio import validate_json
 from moirejax._inversion import Inverter
 from moirejax._simulate import load_schedule
 from moirejax.live import (
@@ -63,6 +64,8 @@ def test_simulated_run_streams_gated_wrenches_close_to_the_truth(device, inverte
     assert not [r for r in caplog.records if "track_frame" in r.getMessage()]
 
     records = [json.loads(line) for line in path.read_text().splitlines()]
+    for r in records:
+        validate_json(r, "live_record")
     assert [r["frame"] for r in records] == list(range(32))
     assert runs([r["mode"] for r in records]) == ["vision", "tactile", "vision"]
     # The default script is the "sequence" protocol over the run's 32 frames: compare with
@@ -165,6 +168,8 @@ def test_folder_with_a_corrupt_image_gives_a_status_record(device, inverter, ref
     buffer = io.StringIO()
     summary = run_live(device, str(folder), sinks=[StreamSink(buffer)], inverter=inverter)
     records = [json.loads(line) for line in buffer.getvalue().splitlines()]
+    for r in records:
+        validate_json(r, "live_record")
     assert [r["frame"] for r in records] == list(range(7))
     assert [r["status"] for r in records[:4]] == ["no_contact"] * 3 + ["corrupt_frame"]
     assert "frame3.png" in records[3]["message"] and records[3]["force"] is None

@@ -1,15 +1,18 @@
 """Calibrate, evaluate, transfer and import on small simulated datasets: outputs, files, failure paths."""
 
+import csv
 import json
+import math
 
 import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax._calibration import Recipe
+from moirejax._calibration import load_recipe, Recipe
 from moirejax._cli import main
 from moirejax._dataset import Dataset, export_recording
 from moirejax._docs import cli_reference
+from moirejax._fileio import validate_json
 from moirejax._simulate import simulate_dataset
 from moirejax._workflows import calibrate, evaluate, transfer
 
@@ -37,7 +40,7 @@ def test_calibrate_evaluate_transfer(datasets):
         root / "mid.json",
         root / "cal",
         root / "fit.json",
-        recipe=Recipe(rounds=1, parameter_frames=8, parameter_steps=4, latent_steps=8),
+        recipe=load_recipe("unit").replace(rounds=1, parameter_frames=8, parameter_steps=4, latent_steps=8),
         baseline_sizes=(10,),
         progress=False,
     )
@@ -45,7 +48,7 @@ def test_calibrate_evaluate_transfer(datasets):
     # Too few frames for a residual head: the calibration says so instead of overfitting.
     assert head is None and "skipped" in json.loads((root / "fit_report" / "metrics.json").read_text())["residual_head"]
     obj = json.loads((root / "fit.json").read_text())
-    assert set(obj["calibration"]["uncertainty"]) == set(Recipe().free)
+    assert set(obj["calibration"]["uncertainty"]) == set(load_recipe("unit").free)
     report = root / "fit_report"
     for name in ("metrics.json", "parity.png", "residuals.png", "parameters.png"):
         assert (report / name).exists(), name
@@ -59,9 +62,49 @@ def test_calibrate_evaluate_transfer(datasets):
     # even from this tiny calibration.
     assert metrics["r2"]["fz"] > 0.8, metrics["r2"]
 
-    transfer(root / "fit.json", root / "test", root / "fit_b.json", max_frames=5, progress=False)
+    # A transfer recipe from a file whose prior pins the stiffness to unit A's value.
+    pinned = load_recipe("transfer").replace(name="pinned", prior_sd=(("elastomer.E", 1e-5),))
+    (root / "pinned.json").write_text(json.dumps(pinned.to_json()))
+    transfer(
+        root / "fit.json", root / "test", root / "fit_b.json", max_frames=5, recipe=root / "pinned.json", progress=False
+    )
     fitted_b, head_b = mj._workflows.load_calibrated(root / "fit_b.json")
     assert head_b is None and fitted_b.layout == fitted.layout
+    assert json.loads((root / "fit_b.json").read_text())["calibration"]["recipe"] == "pinned"
+    assert float(fitted_b.elastomer.E) == pytest.approx(float(fitted.elastomer.E), rel=1e-3)
+
+
+def test_spanning_frames_load_every_axis():
+    # An isolated-axis session, as the paper's: mostly normal presses, a few shear and twist.
+    rng = np.random.default_rng(0)
+    wrenches = np.zeros((60, 6))
+    wrenches[:, 2] = rng.uniform(0.3, 1.2, 60)
+    for row, axis, value in ((7, 0, 0.15), (19, 1, -0.18), (33, 5, 0.006), (41, 3, 0.01), (52, 0, -0.12)):
+        wrenches[row, axis] = value
+    chosen = mj._workflows.spanning_frames(wrenches, 8)
+    assert len(set(chosen.tolist())) == 8 and {7, 19, 33, 41, 52} <= set(chosen.tolist())
+    assert int(np.argmax(wrenches[:, 2])) in chosen
+    assert len(mj._workflows.spanning_frames(wrenches[:3], 8)) == 3
+
+
+def test_named_recipes_round_trip_and_bad_recipes_are_refused(tmp_path):
+    for name in ("unit", "transfer"):
+        recipe = load_recipe(name)
+        assert recipe.name == name and Recipe.from_json(recipe.to_json()) == recipe
+        assert set(dict(recipe.prior_sd)) <= set(recipe.free)
+    with pytest.raises(ValueError, match="not a Device parameter"):
+        Recipe(name="bad", free=("elastomer.stiffness",))
+    with pytest.raises(ValueError, match="not among its free"):
+        Recipe(name="bad", free=("elastomer.E",), log=("optics.gain",))
+    bad = load_recipe("unit").to_json() | {"rounds": 0}
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(mj.DataError, match="rounds"):
+        load_recipe(tmp_path / "bad.json")
+    (tmp_path / "typo.json").write_text(json.dumps(load_recipe("unit").to_json() | {"free": ["optics.gian"]}))
+    with pytest.raises(mj.DataError, match="optics.gian"):
+        load_recipe(tmp_path / "typo.json")
+    with pytest.raises(mj.DataError, match="named: transfer, unit"):
+        load_recipe("nonesuch")
 
 
 def test_interrupted_calibration_leaves_no_device_file(datasets, monkeypatch):
@@ -116,6 +159,16 @@ def test_invert_cli_writes_status_rows(tmp_path, datasets):
     rows = out.read_text().splitlines()
     assert rows[0].startswith("frame,fx,fy,fz,tx,ty,tz,sigma_fx")
     assert rows[-1].startswith("zz_corrupt.png") and "unreadable" in rows[-1]
+    # Every row, parsed, is what data_schema/wrench_csv.schema.json describes.
+    with open(out, newline="") as f:
+        for row in csv.DictReader(f):
+            parsed = {k: v if k in ("frame", "status", "message") else _number(v) for k, v in row.items()}
+            validate_json(parsed, "wrench_csv", source=str(out))
+
+
+def _number(text: str) -> float | None:
+    value = float(text)
+    return value if math.isfinite(value) else None
 
 
 def test_readme_cli_reference_is_current():
@@ -123,3 +176,19 @@ def test_readme_cli_reference_is_current():
 
     readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
     assert cli_reference() in readme, "run `python -m moirejax._docs` to regenerate the README's CLI reference"
+
+
+def test_fitted_preset_in_fits_loads_with_its_head():
+    from pathlib import Path
+
+    fits = Path(__file__).resolve().parent.parent / "fits"
+    device, head = mj._workflows.load_calibrated(fits / "mid-sim-unit3.json")
+    assert head is not None and device.layout == mj.preset("mid").layout
+    calibration = json.loads((fits / "mid-sim-unit3.json").read_text())["calibration"]
+    assert calibration["recipe"] == "unit" and set(calibration["uncertainty"]) == set(load_recipe("unit").free)
+    # The simulated unit is softer than its design; the fit says so.
+    assert 0.8 < float(device.elastomer.E) < 0.9
+    # The float32 head corrects float64 estimates (this suite runs with x64 enabled).
+    corrected = head.correct(np.array([[0.0, 0.0, 0.6, 0.0, 0.0, 0.0]]), np.zeros(1), np.zeros(1), np.full(1, 3.5))
+    assert corrected.shape == (1, 6) and np.all(np.isfinite(corrected))
+    assert abs(corrected[0, 2] - 0.6) < 0.1

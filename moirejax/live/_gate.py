@@ -104,7 +104,7 @@ class GateER:
         moire_wavevectors: np.ndarray | None = None,
         px_per_mm: Real = 1.0,
         n_moire: int = 1,
-        work_size: int = 160,
+        work_size: int = 128,
         window_periods: Real = 0.5,
     ):
         if not 0 < hysteresis < 1:
