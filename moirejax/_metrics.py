@@ -9,6 +9,9 @@ from ._plotting import pyplot, save_figure
 
 AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
 UNITS = ("N", "N", "N", "N·m", "N·m", "N·m")
+# Plots show torques in mN·m: tick labels in N·m (0.0025 steps) run into each other.
+PLOT_SCALE = np.array([1.0, 1.0, 1.0, 1e3, 1e3, 1e3])
+PLOT_UNITS = ("N", "N", "N", "mN·m", "mN·m", "mN·m")
 
 
 def wrench_metrics(
@@ -63,17 +66,17 @@ def plot_parity(
     fig, axes = plt.subplots(2, 3, figsize=(13, 8))
     ok = np.all(np.isfinite(estimate), axis=1)
     for j, ax in enumerate(axes.flat):
-        t, e = true[ok, j], estimate[ok, j]
+        t, e = true[ok, j] * PLOT_SCALE[j], estimate[ok, j] * PLOT_SCALE[j]
         if sigma is not None:
-            ax.errorbar(t, e, yerr=1.96 * sigma[ok, j], fmt="none", ecolor="0.7", lw=0.6, zorder=1)
+            ax.errorbar(t, e, yerr=1.96 * sigma[ok, j] * PLOT_SCALE[j], fmt="none", ecolor="0.7", lw=0.6, zorder=1)
         ax.scatter(t, e, s=6, zorder=2)
         lo, hi = float(np.min(t, initial=0)), float(np.max(t, initial=0))
         pad = 0.05 * (hi - lo + 1e-12)
         ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], "k--", lw=0.8)
         r2 = 1 - np.sum((e - t) ** 2) / max(np.sum((t - t.mean()) ** 2), 1e-30)
         ax.set_title(f"{AXES[j]}  R² = {r2:.4f}")
-        ax.set_xlabel(f"reference ({UNITS[j]})")
-        ax.set_ylabel(f"estimate ({UNITS[j]})")
+        ax.set_xlabel(f"reference ({PLOT_UNITS[j]})")
+        ax.set_ylabel(f"estimate ({PLOT_UNITS[j]})")
     fig.suptitle(title)
     fig.tight_layout()
     save_figure(fig, path)
@@ -85,10 +88,11 @@ def plot_residuals(path: str | Path, true: np.ndarray, estimate: np.ndarray, *, 
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
     ok = np.all(np.isfinite(estimate), axis=1)
     for j, ax in enumerate(axes.flat):
-        err = estimate[ok, j] - true[ok, j]
+        err = (estimate[ok, j] - true[ok, j]) * PLOT_SCALE[j]
         ax.hist(err, bins=40, color="C1")
-        ax.set_title(f"{AXES[j]} error: mean {err.mean():.2g}, sd {err.std():.2g} {UNITS[j]}" if len(err) else AXES[j])
-        ax.set_xlabel(f"estimate - reference ({UNITS[j]})")
+        title = f"{AXES[j]} error: mean {err.mean():.2g}, sd {err.std():.2g} {PLOT_UNITS[j]}"
+        ax.set_title(title if len(err) else AXES[j])
+        ax.set_xlabel(f"estimate - reference ({PLOT_UNITS[j]})")
     fig.suptitle(title)
     fig.tight_layout()
     save_figure(fig, path)
