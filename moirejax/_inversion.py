@@ -140,6 +140,7 @@ class Inverter(eqx.Module):
     fringe_weight: Float[Array, "families m n"]
     brightness_weight: Float[Array, "m n"]
     noise_residuals: Float[Array, "samples n"]
+    noise_power: Float[Array, ""]
     glow_per_newton: Float[Array, ""]
     model_shape: tuple[int, int] = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
@@ -214,6 +215,7 @@ class Inverter(eqx.Module):
         self.fringe_weight = self.demodulator.fringe_envelope.astype(zero.dtype)
         self.brightness_weight = self.demodulator.brightness_envelope.astype(zero.dtype)
         self.noise_residuals = self._unit_noise_residuals()
+        self.noise_power = jnp.sum(self.noise_residuals**2) / self.noise_residuals.shape[0]
         # Integrated brightness excess per newton of a centred press: starts Fz.
         press = zero.at[2].set(1.0 / WRENCH_SCALE[2])
         excess = self._predict(press, None).brightness - self._predict(zero, None).brightness
@@ -474,11 +476,12 @@ class Inverter(eqx.Module):
         # Sandwich covariance for correlated noise: the estimate moves by A e for a data
         # noise e, A = (J^T J)^-1 J_data^T; E[e e^T] comes from the stored unit-noise draws.
         # The pixel variance is what makes the residual's expected size match its actual one.
-        moved = inverse @ (jacobian.T @ self.noise_residuals.T)  # (unknowns, samples)
+        # (samples, n) @ (n, unknowns) first: XLA's CPU dot is 4x faster this way round.
+        moved = inverse @ (self.noise_residuals @ jacobian).T  # (unknowns, samples)
         samples = self.noise_residuals.shape[0]
         unit_cov = moved @ moved.T / samples
         explained = jnp.sum(moved * ((jacobian.T @ jacobian) @ moved)) / samples
-        unit_rss = jnp.sum(self.noise_residuals**2) / samples - explained
+        unit_rss = self.noise_power - explained
         variance = jnp.sum(r_data**2) / jnp.maximum(unit_rss, 1e-30)
         cov_y = unit_cov * variance
         scale = jnp.asarray(WRENCH_SCALE, dtype)
