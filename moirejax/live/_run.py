@@ -64,7 +64,7 @@ TactileOutput = tuple[np.ndarray, np.ndarray | None, str, str]
 # raises the threshold to 3x the floor on noisier cameras), and a slow 30% illumination
 # drift with a moving gradient reaches 2.4e-4, so 4e-4 catches a centred press from about
 # 0.05 N: on the 240-frame `sequence` protocol the gate switches one frame after contact
-# onset and one frame before release (benchmarks/live_latency.py).
+# onset (two on its MP4, benchmarks/live_latency.py) and one frame before release.
 GATE_ON_THRESHOLD = 0.0004
 
 
