@@ -22,8 +22,17 @@ PAPER_R2 = {"fx": 0.99, "fy": 0.99, "fz": 0.992, "tx": 0.98, "ty": 0.98, "tz": 0
 def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     """Run the demo into folder `out`; `smoke` shrinks every size (for tests)."""
     from ._calibration import load_recipe
+    from ._dataset import Dataset
+    from ._inversion import Inverter
     from ._simulate import simulate_dataset
-    from ._workflows import calibrate, evaluate, heldout_ridge_r2, invert_frames, load_calibrated
+    from ._workflows import (
+        calibrate,
+        dataset_reference,
+        evaluate,
+        heldout_ridge_r2,
+        invert_frames,
+        load_calibrated,
+    )
 
     start = time.perf_counter()
     out_dir = Path(out)
@@ -58,10 +67,6 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     ridge = heldout_ridge_r2(out_dir / "calibration", out_dir / "heldout", (20, n_cal))
     # Speed once compiled: the held-out loads are unrelated to each other, so every frame is
     # a cold solve; a stream (warm start from the last frame) is several times faster.
-    from ._dataset import Dataset
-    from ._inversion import Inverter
-    from ._workflows import dataset_reference
-
     heldout = Dataset(out_dir / "heldout")
     device, _ = load_calibrated(out_dir / "fit.json")
     inverter = Inverter(device, reference=dataset_reference(heldout))

@@ -646,7 +646,12 @@ def invert_frame(inverter: Inverter, frame: Float[Array, "h w"], init: Float[Arr
 def invert_batch(
     inverter: Inverter, frames: Float[Array, "b h w"], init: Float[Array, "b 10"] | None = None
 ) -> Estimate:
-    """Invert a batch of frames independently (vmapped)."""
+    """Invert a batch of frames independently (vmapped).
+
+    Under `vmap` the solver's fallback starts run for every frame, not only for frames
+    that need them: seven Levenberg–Marquardt solves a frame. A stream is much cheaper
+    through [`track_frame`][] or [`invert_sequence`][].
+    """
     if init is None:
         return jax.vmap(lambda f: inverter.solve(f, None))(frames)
     return jax.vmap(inverter.solve)(frames, init)

@@ -90,8 +90,8 @@ def plot_residuals(path: str | Path, true: np.ndarray, estimate: np.ndarray, *, 
     for j, ax in enumerate(axes.flat):
         err = (estimate[ok, j] - true[ok, j]) * PLOT_SCALE[j]
         ax.hist(err, bins=40, color="C1")
-        title = f"{AXES[j]} error: mean {err.mean():.2g}, sd {err.std():.2g} {PLOT_UNITS[j]}"
-        ax.set_title(title if len(err) else AXES[j])
+        axis_title = f"{AXES[j]} error: mean {err.mean():.2g}, sd {err.std():.2g} {PLOT_UNITS[j]}"
+        ax.set_title(axis_title if len(err) else AXES[j])
         ax.set_xlabel(f"estimate - reference ({PLOT_UNITS[j]})")
     fig.suptitle(title)
     fig.tight_layout()

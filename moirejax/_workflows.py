@@ -147,20 +147,23 @@ def cross_validated_ridge_r2(
 
 
 def heldout_ridge_r2(train: str | Path, test: str | Path, sizes: tuple[int, ...]) -> dict[str, dict[str, float]]:
-    """Held-out R² of the [`ridge_baseline`][] trained on the first `n` in-contact frames of
-    dataset `train`, for each `n` in `sizes`, tested on the in-contact frames of `test`."""
+    """Held-out R² of the [`ridge_baseline`][] trained on `n` random in-contact frames of
+    dataset `train` (the same order for every `n`), for each `n` in `sizes`, tested on the
+    in-contact frames of `test`."""
     train_set, test_set = Dataset(train), Dataset(test)
     reference = dataset_reference(train_set)
-    train_idx, test_idx = _select(train_set, None), _select(test_set, None)
+    train_idx = _select(train_set, None)
+    train_idx = train_idx[np.random.default_rng(1).permutation(len(train_idx))[: max(sizes)]]
+    train_frames = np.stack([train_set.frame(int(i)) for i in train_idx])
+    test_idx = _select(test_set, None)
     # Each unit's frames are taken relative to its own no-contact reference.
     shift = dataset_reference(test_set) - reference
     test_frames = [test_set.frame(int(i)) - shift for i in test_idx]
     out = {}
     for n in sizes:
-        idx = train_idx[np.random.default_rng(1).permutation(len(train_idx))[:n]]
-        frames = [train_set.frame(int(i)) for i in idx]
-        predicted = ridge_baseline(frames, train_set.wrenches[idx], test_frames, reference)
-        out[str(len(idx))] = wrench_metrics(test_set.wrenches[test_idx], predicted)["r2"]
+        n = min(n, len(train_idx))
+        predicted = ridge_baseline(train_frames[:n], train_set.wrenches[train_idx[:n]], test_frames, reference)
+        out[str(n)] = wrench_metrics(test_set.wrenches[test_idx], predicted)["r2"]
     return out
 
 
@@ -384,7 +387,8 @@ def transfer(
             "frames": int(ok.sum()),
             "scaled_mse_without_head": without,
             "scaled_mse_with_head": with_head,
-            "kept": bool(with_head <= without),
+            # Without a usable frame there is no evidence against the head.
+            "kept": bool(not ok.any() or with_head <= without),
         }
         if not head_check["kept"]:
             head = None

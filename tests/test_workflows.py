@@ -192,3 +192,16 @@ def test_fitted_preset_in_fits_loads_with_its_head():
     corrected = head.correct(np.array([[0.0, 0.0, 0.6, 0.0, 0.0, 0.0]]), np.zeros(1), np.zeros(1), np.full(1, 3.5))
     assert corrected.shape == (1, 6) and np.all(np.isfinite(corrected))
     assert abs(corrected[0, 2] - 0.6) < 0.1
+
+
+def test_demo_runs_end_to_end_in_smoke_mode(tmp_path, capsys):
+    from moirejax._demo import run_demo
+
+    assert run_demo(str(tmp_path / "demo"), smoke=True) == 0
+    out = capsys.readouterr().out
+    assert "before calibration" in out and "ridge R2" in out and "ms per independent frame" in out
+    for name in ("design_maps.png", "fit.json", "after/parity.png", "after/metrics.json", "fit_report/parameters.png"):
+        assert (tmp_path / "demo" / name).exists(), name
+    # Each axis row: before and after R2 and MAE, two ridge R2 values, the paper's R2.
+    rows = [line for line in out.splitlines() if line[:2] in ("fx", "fy", "fz", "tx", "ty", "tz")]
+    assert len(rows) == 6 and all(len(row.split()) >= 11 for row in rows)
