@@ -1,17 +1,32 @@
-"""Cramér–Rao bound against the inversion's actual scatter: `python benchmarks/crb_vs_scatter.py --json`.
+"""Cramér–Rao bound against the inversions' actual scatter: `python benchmarks/crb_vs_scatter.py --json`.
 
 Renders one `model`-fidelity frame of the Mid design at the nominal observability load,
 draws `--frames` noisy copies with the camera noise model the bound assumes (shot noise at
-4000 e- full well, 4 e- read noise, 8-bit quantisation), inverts each independently
-(Levenberg–Marquardt from a cold start), and compares per axis: the bound, the empirical
-standard deviation and bias of the estimates, and the mean standard error the inversion
-reports. An efficient, unbiased inversion has scatter/bound near 1; the inversion fits the
-demodulated bands only (the carriers and harmonics carry information it leaves), so a
-ratio above 1 measures what that choice costs.
+4000 e- full well, 4 e- read noise, 8-bit quantisation), and estimates the wrench of each
+twice: by the band inversion (Levenberg–Marquardt from a cold start, [`invert_frame`][])
+and by its refinement in pixels ([`refine_in_pixels`][], a maximum-likelihood fit of the
+whole frame started from the band estimate). Per axis and estimator: the empirical
+standard deviation and bias, the mean standard error the estimator reports, and whether
+the scatter agrees with the bound within 20% where the estimator is unbiased.
+
+The band inversion fits the demodulated bands only (the carriers and harmonics carry
+information it leaves), so its scatter/bound above 1 measures what that choice costs; the
+pixel fit is efficient for such exactly modelled frames, so its ratio should be 1.
+
+The frames, the bound and the pixel fit share one mechanics grid (`--mechanics`): a frame
+rendered on 128 x 128 and fitted on 64 x 64 differs from the model by a few percent of
+the pixel noise over the whole contact, which biases a fit of every pixel by about 7
+standard errors in Fz.
+
+"Unbiased" means no bias these frames can detect: |bias| below three standard errors of
+the mean (3 std / sqrt(frames), 0.21 std for 200 frames, when a bias would add at most 2%
+to the RMS error). The scatter itself is uncertain by 1/sqrt(2 (frames - 1)) of itself
+(5% for 200 frames), so the 20% test means something only for a hundred frames or more.
 """
 
 import argparse
 import json
+import math
 import time
 
 import jax
@@ -20,66 +35,127 @@ import numpy as np
 
 import moirejax as mj
 from moirejax._contact import Contact
-from moirejax._inversion import invert_frame, Inverter
-from moirejax._observability import cramer_rao, nominal_load, pixel_noise_variance
+from moirejax._inversion import initial_state, invert_frame, Inverter, WRENCH_SCALE
+from moirejax._observability import cramer_rao, nominal_load
+from moirejax._pixel_fit import refine_in_pixels
 from moirejax._render import HighFidelity, render_frame
 
 
 AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
+AGREEMENT = 0.2
+
+
+def _per_axis(values) -> dict[str, float]:
+    return {a: float(v) for a, v in zip(AXES, values)}
+
+
+def _summary(
+    estimates: np.ndarray, reported: np.ndarray, truth: np.ndarray, crb: np.ndarray, crb_exposure: np.ndarray
+) -> dict:
+    """Scatter, bias and reported sigma of one estimator over the frames it solved."""
+    n = len(estimates)
+    if n < 2:
+        return {"frames": n}
+    scatter = estimates.std(axis=0, ddof=1)
+    bias = estimates.mean(axis=0) - truth
+    ratio = scatter / crb
+    unbiased = np.abs(bias) < 3 * scatter / math.sqrt(n)
+    agrees = unbiased & (np.abs(ratio - 1) <= AGREEMENT)
+    return {
+        "frames": n,
+        "empirical_std": _per_axis(scatter),
+        "scatter_over_crb": _per_axis(ratio.round(3)),
+        # Both estimators fit the exposure too, whose bound is a little wider (Fz).
+        "scatter_over_crb_exposure_fitted": _per_axis((scatter / crb_exposure).round(3)),
+        "bias_over_std": _per_axis((bias / scatter).round(3)),
+        # Bias in standard errors of the mean: beyond 3, these frames detect it.
+        "bias_z": _per_axis((bias / scatter * math.sqrt(n)).round(2)),
+        "reported_sigma_over_scatter": _per_axis((reported.mean(axis=0) / scatter).round(3)),
+        "unbiased": {a: bool(u) for a, u in zip(AXES, unbiased)},
+        "within_20pct_where_unbiased": {a: (bool(g) if u else None) for a, g, u in zip(AXES, agrees, unbiased)},
+        "all_unbiased_axes_agree": bool(np.all(agrees[unbiased])),
+    }
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--json", action="store_true")
-    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--frames", type=int, default=200, help="noisy frames to invert")
     parser.add_argument("--layout", default="crossed", choices=("crossed", "lines"))
+    parser.add_argument("--mechanics", type=int, default=64, help="mechanics grid of frames, bound and pixel fit")
     args = parser.parse_args(argv)
 
     device = mj.preset("mid", layout=args.layout)
+    mechanics = (args.mechanics, args.mechanics)
     wrench, contact = nominal_load(np.float32)
+    truth = np.asarray(wrench, np.float64)
     noise = HighFidelity()
-    bound = cramer_rao(device, wrench, contact, noise)
-    clean = render_frame(device, wrench, contact)
-    std = jnp.sqrt(pixel_noise_variance(clean, noise))
-    levels = 2**noise.bit_depth - 1
-    inverter = Inverter(device, reference=render_frame(device, jnp.zeros(6), Contact()))
-
-    estimates, reported, statuses = [], [], []
-    start = time.perf_counter()
-    for i in range(args.frames):
-        # Shot and read noise as a Gaussian of the same variance, then 8-bit quantisation.
-        draw = clean + std * jax.random.normal(jax.random.PRNGKey(i), clean.shape)
-        frame = jnp.round(jnp.clip(draw, 0.0, 1.0) * levels) / levels
-        estimate = invert_frame(inverter, frame)
-        statuses.append(int(estimate.status))
-        estimates.append(np.asarray(estimate.wrench, np.float64))
-        reported.append(np.asarray(estimate.sigma, np.float64))
-    elapsed = time.perf_counter() - start
-    ok = np.isin(statuses, [int(mj.Status.CONVERGED)])
-    estimates, reported = np.array(estimates)[ok], np.array(reported)[ok]
-    scatter = estimates.std(axis=0, ddof=1)
-    bias = estimates.mean(axis=0) - np.asarray(wrench, np.float64)
+    bound = cramer_rao(device, wrench, contact, noise, mechanics_shape=mechanics)
     crb = np.array([bound["std"][a] for a in AXES], np.float64)
+    clean = render_frame(device, wrench, contact, mechanics_shape=mechanics)
+    inverter = Inverter(device, reference=render_frame(device, jnp.zeros(6), Contact(), mechanics_shape=mechanics))
+    refine = lambda frame, start: refine_in_pixels(device, frame, start, noise, mechanics_shape=mechanics)
+
+    # The noise-free frame fitted from the truth: a check that the fit reproduces its own
+    # model (zero bias), and the bound with the exposure estimated too, as the fit does.
+    truth_state = initial_state(float(contact.x0), float(contact.y0), float(contact.radius), np.float32)
+    truth_state = truth_state.at[:6].set(wrench / jnp.asarray(WRENCH_SCALE, wrench.dtype))
+    exact = refine(clean, truth_state)
+    crb_exposure = np.asarray(exact.sigma, np.float64)
+    # Compile both estimators before timing them.
+    invert_frame(inverter, clean)
+    jax.block_until_ready(refine(clean, truth_state))
+
+    # Shot and read noise as a Gaussian of their variance, then 8-bit quantisation (whose
+    # uniform rounding error completes the variance the bound assumes).
+    shot_read = jnp.sqrt(jnp.clip(clean, 0.0, 1.0) * noise.full_well + noise.read_noise**2) / noise.full_well
+    levels = 2**noise.bit_depth - 1
+    estimates, fits = [], []
+    band_seconds = pixel_seconds = 0.0
+    for i in range(args.frames):
+        draw = clean + shot_read * jax.random.normal(jax.random.PRNGKey(i), clean.shape)
+        frame = jnp.round(jnp.clip(draw, 0.0, 1.0) * levels) / levels
+        start = time.perf_counter()
+        estimates.append(jax.block_until_ready(invert_frame(inverter, frame)))
+        band_seconds += time.perf_counter() - start
+        start = time.perf_counter()
+        fits.append(jax.block_until_ready(refine(frame, estimates[-1])))
+        pixel_seconds += time.perf_counter() - start
+    band, pixel = (jax.tree_util.tree_map(lambda *x: np.stack(x), *results) for results in (estimates, fits))
+
+    def solved(results):
+        ok = results.status == int(mj.Status.CONVERGED)
+        return results.wrench[ok].astype(np.float64), results.sigma[ok].astype(np.float64)
+
     result = {
         "layout": args.layout,
         "load": {
             "wrench": np.asarray(wrench).tolist(),
             "contact": [float(contact.x0), float(contact.y0), float(contact.radius)],
         },
+        "mechanics_shape": list(mechanics),
         "frames": args.frames,
-        "converged": int(ok.sum()),
-        "crb_std": dict(zip(AXES, crb.tolist())),
-        "empirical_std": dict(zip(AXES, scatter.tolist())),
-        "scatter_over_crb": dict(zip(AXES, (scatter / crb).round(3).tolist())),
-        "bias_over_std": dict(zip(AXES, (bias / scatter).round(3).tolist())),
-        "reported_sigma_over_scatter": dict(zip(AXES, (reported.mean(axis=0) / scatter).round(3).tolist())),
-        "seconds_per_frame": elapsed / args.frames,
+        "crb_std": _per_axis(crb),
+        "crb_std_exposure_fitted": _per_axis(crb_exposure),
+        "noise_free_pixel_fit_error_over_crb": _per_axis(((np.asarray(exact.wrench) - truth) / crb).round(4)),
+        "band": {
+            "converged": int(np.sum(band.status == int(mj.Status.CONVERGED))),
+            **_summary(*solved(band), truth, crb, crb_exposure),
+            "seconds_per_frame": band_seconds / args.frames,
+        },
+        "pixel": {
+            "converged": int(np.sum(pixel.status == int(mj.Status.CONVERGED))),
+            **_summary(*solved(pixel), truth, crb, crb_exposure),
+            "mean_chi2_per_dof": float(np.mean(pixel.chi2)),
+            "mean_steps": float(np.mean(pixel.steps)),
+            "seconds_per_frame": pixel_seconds / args.frames,
+        },
     }
     if args.json:
         print(json.dumps(result, indent=2))
     else:
         for k, v in result.items():
-            print(f"{k:28s} {v}")
+            print(f"{k:36s} {v}")
 
 
 if __name__ == "__main__":

@@ -63,6 +63,7 @@ from ._inversion import (
     invert_frame as invert_frame,
     invert_sequence as invert_sequence,
     Inverter as Inverter,
+    model_grid_for as model_grid_for,
     Status as Status,
     Track as Track,
     track_frame as track_frame,
@@ -74,6 +75,7 @@ from ._observability import (
     force_sensitivity as force_sensitivity,
     observability_table as observability_table,
     optimise_design as optimise_design,
+    stray_beat_clearance as stray_beat_clearance,
 )
 from ._observables import (
     Demodulator as Demodulator,
@@ -81,6 +83,7 @@ from ._observables import (
     fringe_observables as fringe_observables,
     FringeFields as FringeFields,
 )
+from ._pixel_fit import PixelFit as PixelFit, refine_in_pixels as refine_in_pixels
 from ._reference import match_reference_geometry as match_reference_geometry
 from ._render import (
     deformation as deformation,

@@ -629,10 +629,49 @@ def _relative_crb(device: Device, noise: HighFidelity, mechanics_shape) -> Float
     return jnp.sqrt(jnp.diag(jnp.linalg.inv(information))[:6])
 
 
+def stray_beat_clearance(
+    device: Device, band_fraction: float = 0.45, max_order: int | None = None
+) -> Float[Array, " sets"]:
+    r"""How far the gratings' mixed-order beats stay from the demodulated bands, per family.
+
+    Harmonics $n$ of the upper grating and $m$ of the reference beat at
+    $n\mathbf{k}_1' - m\mathbf{k}_2 = n\mathbf{K} + (n - m)\mathbf{k}_2$. For $n \ne m$
+    these are not moiré fringes of the design, and no band model includes them; when the
+    pitch ratio $p_1'/p_2$ is near $(q + 1)/q$ for small $q$, some land on the fringe band
+    ($\pm\mathbf{K}$) or the brightness band (0) and bias the phase there (at
+    $p_1'/p_2 = 4/3$, $3\mathbf{k}_1' - 2\mathbf{k}_2 = -\mathbf{K}$ with a tenth of the
+    fringe's amplitude). Returns, per family, the smallest distance of any such beat
+    ($1 \le n, m \le$ `max_order`, default the device's `harmonics`; binary gratings
+    carry higher orders at a few per cent, the paper's Dense design has one at orders 3
+    and 4) to a band centre over that band's radius (`band_fraction`
+    of $|\mathbf{K}_f|$, of the smallest $|\mathbf{K}|$ for brightness, as the
+    [`Demodulator`][] uses): above 1 the bands are clean.
+    """
+    max_order = device.harmonics if max_order is None else max_order
+    k1 = device.apparent_upper_wavevectors()
+    k2 = device.reference_wavevectors()
+    K = k1 - k2
+    orders = [(n, m) for n in range(1, max_order + 1) for m in range(1, max_order + 1) if n != m]
+    n = jnp.asarray([o[0] for o in orders], K.dtype)[:, None, None]
+    m = jnp.asarray([o[1] for o in orders], K.dtype)[:, None, None]
+    beats = n * k1[None] - m * k2[None]  # (orders, sets, 2)
+    fringe_radius = band_fraction * jnp.linalg.norm(K, axis=-1)
+    brightness_radius = band_fraction * jnp.min(jnp.linalg.norm(K, axis=-1))
+    # A real frame holds every beat with its conjugate, so -K is as bad as K.
+    to_fringe = jnp.minimum(jnp.linalg.norm(beats - K[None], axis=-1), jnp.linalg.norm(beats + K[None], axis=-1))
+    clearance = jnp.minimum(to_fringe / fringe_radius[None], jnp.linalg.norm(beats, axis=-1) / brightness_radius)
+    return jnp.min(clearance, axis=0)
+
+
+# Beats must clear a band by a fifth of its radius more: the band window's taper.
+_MIN_BEAT_CLEARANCE = 1.2
+
+
 def _violations(device: Device, min_period, max_phase, mechanics_shape) -> Float[Array, " n"]:
-    """Log-ratios of the penalised limits, <= 0 when met: moiré period, then phase range per axis."""
+    """Log-ratios of the penalised limits, <= 0 when met: moiré period, stray beats, then
+    phase range per axis."""
     period = 2 * jnp.pi / jnp.linalg.norm(device.moire_wavevectors(), axis=-1)
-    out = [jnp.log(min_period / period)]
+    out = [jnp.log(min_period / period), jnp.log(_MIN_BEAT_CLEARANCE / stray_beat_clearance(device))]
     if max_phase is not None:
         out.append(jnp.log(phase_range(device, mechanics_shape=mechanics_shape) / max_phase))
     return jnp.concatenate(out)
@@ -651,6 +690,7 @@ def _summary(device: Device, relative: np.ndarray, violations: np.ndarray, phase
         "duty1": float(device.duty1),
         "duty2": float(device.duty2),
         "period_mm": float(np.min(2 * np.pi / np.linalg.norm(np.asarray(device.moire_wavevectors()), axis=-1))),
+        "stray_beat_clearance": float(np.min(np.asarray(stray_beat_clearance(device)))),
         "rel_crb": {name: float(v) for name, v in zip(WRENCH_AXES, relative)},
         "worst_axis": _worst_axes(relative),
         "worst_rel_crb": float(np.max(relative)),
@@ -694,8 +734,10 @@ def optimise_design(
     the elastomer thickness and `max_separation` (default Z/2); duty cycles within
     `duty_range`; |Δα| below `max_angle_deg`. Limits kept by a quadratic penalty on their
     log-ratio: the moiré period of every family at least `1/max_fringe_density` (default
-    8 pixels); with each wrench axis alone over the paper's range, the fringe phase
-    change nowhere above `max_phase_range` (rad; `None` drops it). The returned design is
+    8 pixels); no mixed-order grating beat up to the modelled harmonic within 1.2 band radii of
+    a demodulated band ([`stray_beat_clearance`][]: a beat there biases the fringe phase
+    and no band model includes it); with each wrench axis alone over the paper's range,
+    the fringe phase change nowhere above `max_phase_range` (rad; `None` drops it). The returned design is
     the best iterate that meets the penalised limits to 1% (the last one if none does).
 
     **Arguments:** the limits above, and

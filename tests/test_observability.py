@@ -204,3 +204,24 @@ def test_phase_range_of_mid_twist_wraps():
     ranges = np.asarray(phase_range(mj.preset("mid")))
     assert ranges[5] > 2 * math.pi * 0.9
     assert np.all(ranges[:3] < math.pi / 2)
+
+
+def test_stray_beats_in_a_band_are_found_and_refused():
+    mid = mj.preset("mid")
+    # Mid: |k2| is 14 |K|, so no beat up to the 3rd harmonic comes near a band.
+    assert float(jnp.min(mj.stray_beat_clearance(mid))) > 10
+    # Apparent pitch ratio p1'/p2 = 4/3: K = -k2/4, so 3 k1' - 2 k2 = -K exactly (and
+    # 4 k1' - 3 k2 = 0 lands on the brightness band at order 4).
+    p2 = 0.45
+    p1 = (4 / 3) * p2 * (mid.Z + mid.a) / mid.Z
+    rational = dataclasses.replace(mid, p1=p1, p2=p2)
+    assert float(jnp.min(mj.stray_beat_clearance(rational))) < 1e-3
+    assert float(jnp.min(mj.stray_beat_clearance(dataclasses.replace(mid, p1=p1, p2=p2, harmonics=2)))) > 1
+    with pytest.warns(UserWarning, match="mixed-order grating beat"):
+        mj.Inverter(rational)
+
+
+def test_model_grid_resolves_the_moire_period():
+    assert mj.model_grid_for(mj.preset("mid")) == (64, 64)  # 4.2 mm period over 32 mm
+    n, _ = mj.model_grid_for(mj.preset("dense"))  # 0.8 mm period: 8 samples each
+    assert n % 16 == 0 and 8 * 32 / 0.8 <= n < 8 * 32 / 0.8 + 16

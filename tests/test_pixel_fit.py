@@ -1,0 +1,122 @@
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import jax.random as jr
+import jaxtyping
+import numpy as np
+import pytest
+
+import moirejax as mj
+from moirejax._contact import Contact
+from moirejax._inversion import initial_state, WRENCH_SCALE
+from moirejax._observability import fisher_information, pixel_noise_variance
+from moirejax._pixel_fit import refine_in_pixels
+from moirejax._render import HighFidelity, render_frame
+
+
+# A coarse frame and mechanics grid: only the numerics of the fit are under test here.
+SHAPE = (32, 32)
+NOISE = HighFidelity(full_well=3000.0, read_noise=5.0)
+WRENCH = np.array([0.03, -0.02, 0.6, 0.001, -0.0005, 0.002])
+X0, Y0, RADIUS, EXPOSURE = 0.4, -0.3, 3.5, 1.05
+
+
+# Every fit of this module goes through one compiled program: a new frame, start or
+# load must never recompile the per-frame solve.
+_refine = eqx.filter_jit(eqx.debug.assert_max_traces(refine_in_pixels, max_traces=1))
+
+
+def _device():
+    return mj.preset("mid", height=48, width=48, px_per_mm=6.0)
+
+
+def _truth():
+    state = initial_state(X0, Y0, RADIUS).at[:6].set(jnp.asarray(WRENCH / WRENCH_SCALE))
+    return state.at[9].set(math.log(EXPOSURE))
+
+
+def _frame(device):
+    contact = Contact(x0=X0, y0=Y0, radius=RADIUS)
+    return render_frame(device, jnp.asarray(WRENCH), contact, exposure=EXPOSURE, mechanics_shape=SHAPE)
+
+
+def test_noise_free_frame_recovers_the_load_from_a_perturbed_start():
+    device = _device()
+    truth = _truth()
+    # Off in every unknown, the wrench by about 2% of its range.
+    offset = jnp.asarray([0.02, -0.02, 0.01, 0.02, -0.02, 0.02, 0.05, -0.05, 0.03, 0.01])
+    fit = _refine(device, _frame(device), truth + offset, NOISE, mechanics_shape=SHAPE)
+    assert int(fit.status) == int(mj.Status.CONVERGED) and bool(fit.converged)
+    assert 2 <= int(fit.steps) <= 6
+    assert np.all(np.abs(np.asarray(fit.wrench) - WRENCH) < 1e-3 * np.asarray(fit.sigma))
+    np.testing.assert_allclose(fit.state, truth, atol=1e-8)
+    assert float(fit.contact.radius) == pytest.approx(RADIUS, rel=1e-8)
+    assert float(fit.exposure) == pytest.approx(EXPOSURE, rel=1e-8)
+    assert float(fit.chi2) < 1e-12
+
+
+def test_covariance_is_the_inverse_fisher_information():
+    device = _device()
+    frame = _frame(device)
+    fit = _refine(device, frame, _truth(), NOISE, mechanics_shape=SHAPE)
+
+    # A second route: central differences of the frame in (wrench, x0, y0, radius,
+    # exposure), the camera noise by hand. The fit's log radius and log exposure change
+    # the nuisance parameterisation only, which leaves the wrench block unchanged.
+    theta = np.concatenate([WRENCH, [X0, Y0, RADIUS, EXPOSURE]])
+
+    def render(t):
+        contact = Contact(x0=t[6], y0=t[7], radius=t[8])
+        return np.asarray(render_frame(device, jnp.asarray(t[:6]), contact, exposure=t[9], mechanics_shape=SHAPE))
+
+    steps = np.array([1e-5, 1e-5, 1e-5, 1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5, 1e-5])
+    columns = []
+    for i, h in enumerate(steps):
+        e = np.zeros(10)
+        e[i] = h
+        columns.append(((render(theta + e) - render(theta - e)) / (2 * h)).ravel())
+    J = np.stack(columns)
+    v = np.asarray(frame).ravel()
+    variance = (np.clip(v, 0, 1) * 3000.0 + 25.0) / 3000.0**2 + 1 / (12 * 255.0**2)
+    information = (J / variance) @ J.T
+    covariance = np.linalg.inv(information)[:6, :6]
+    scale = np.sqrt(np.outer(np.diag(covariance), np.diag(covariance)))
+    assert np.max(np.abs(np.asarray(fit.covariance) - covariance) / scale) < 1e-5
+    np.testing.assert_allclose(fit.sigma, np.sqrt(np.diag(covariance)), rtol=1e-5)
+
+    # `fisher_information` is the same information with the exposure known: its 9x9
+    # block agrees, and its bound is nowhere wider than the fit's.
+    F9 = np.asarray(
+        fisher_information(
+            device,
+            jnp.asarray(WRENCH),
+            Contact(x0=X0, y0=Y0, radius=RADIUS),
+            NOISE,
+            exposure=EXPOSURE,
+            mechanics_shape=SHAPE,
+        )
+    )
+    np.testing.assert_allclose(F9, information[:9, :9], rtol=1e-5, atol=1e-6 * np.max(np.abs(F9)))
+    known_exposure = np.sqrt(np.diag(np.linalg.inv(F9))[:6])
+    assert np.all(known_exposure <= np.asarray(fit.sigma) * (1 + 1e-9))
+
+
+def test_noisy_frames_fit_to_their_noise(getkey):
+    device = _device()
+    frame = _frame(device)
+    std = jnp.sqrt(pixel_noise_variance(frame, NOISE))
+    for _ in range(2):
+        noisy = frame + std * jr.normal(getkey(), frame.shape)
+        fit = _refine(device, noisy, _truth(), NOISE, mechanics_shape=SHAPE)
+        assert bool(fit.converged)
+        # The noise the weights assume: chi2 per degree of freedom is 1 (its std is 0.03 here).
+        assert float(fit.chi2) == pytest.approx(1.0, abs=0.15)
+
+
+def test_wrong_shapes_are_refused():
+    device = _device()
+    with pytest.raises(ValueError, match="frame has shape"):
+        refine_in_pixels(device, jnp.zeros((40, 48)), _truth())
+    with pytest.raises((ValueError, jaxtyping.TypeCheckError)):
+        refine_in_pixels(device, jnp.zeros((48, 48)), jnp.zeros(9))
