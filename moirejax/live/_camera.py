@@ -420,7 +420,7 @@ class VideoSource(AbstractFrameSource):
             latest = True
         super().__init__(latest=latest, reconnect=reconnect, queue_size=queue_size)
         self.replay_fps = replay_fps
-        self._started_at = 0.0
+        self._started_at: float | None = None
         if isinstance(spec, os.PathLike):
             spec = os.fspath(spec)
         self.spec: int | str = int(spec) if _is_device(spec) else spec
@@ -447,10 +447,12 @@ class VideoSource(AbstractFrameSource):
         self._cap = cap
         count = cap.get(cv2.CAP_PROP_FRAME_COUNT)
         self._frame_count = int(count) if math.isfinite(count) and count > 0 else 0
-        self._started_at = time.monotonic()
+        self._started_at = None
 
     def _read(self, index: int) -> tuple[Any, float] | None:
-        if self.replay_fps is not None:
+        # A replay's clock starts at the first frame's grab, as a camera's does: anchored at
+        # the open instead, a slow first decode makes the next frames overdue and bunched.
+        if self.replay_fps is not None and self._started_at is not None:
             due = self._started_at + index / float(self.replay_fps)
             if (wait := due - time.monotonic()) > 0:
                 self._stop.wait(wait)
@@ -464,6 +466,8 @@ class VideoSource(AbstractFrameSource):
                 )
             raise EndOfStreamError(END_OF_STREAM, f"{self.spec}: end of video after {index} frames")
         stamp = time.monotonic()
+        if self._started_at is None:
+            self._started_at = stamp - index / float(self.replay_fps or 1.0)
         ok, image = self._cap.retrieve()
         if not ok or image is None:
             raise CorruptFrameError(f"{self.spec}: frame {index} could not be decoded")
