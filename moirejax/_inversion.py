@@ -215,7 +215,7 @@ class Inverter(eqx.Module):
         )
         zero = initial_state(dtype=device.p1.dtype)
         if reference is None:
-            self.model_reference = self._predict(zero, None)
+            self.model_reference = self._predict_now(zero, None)
             self.reference = self.model_reference
         else:
             reference = jnp.asarray(reference, dtype=device.p1.dtype)
@@ -224,7 +224,7 @@ class Inverter(eqx.Module):
                     f"reference frame has shape {reference.shape}, device expects {(device.height, device.width)}"
                 )
             self.reference = self.demodulator(reference)
-            self.model_reference = self._predict(zero, self.reference.reference_wavevector)
+            self.model_reference = self._predict_now(zero, self.reference.reference_wavevector)
             if match_reference:
                 # Register the gratings: the model's fringe phase at zero load must match
                 # the unit's, or the contact glow that leaks into the fringe band would be
@@ -233,7 +233,7 @@ class Inverter(eqx.Module):
                 product = self.reference.fringe * jnp.conj(self.model_reference.fringe) * weight
                 offset = jnp.angle(jnp.sum(product, axis=(1, 2)))
                 self.device = eqx.tree_at(lambda d: d.optics.phase1, self.device, self.device.optics.phase1 + offset)
-                self.model_reference = self._predict(zero, self.reference.reference_wavevector)
+                self.model_reference = self._predict_now(zero, self.reference.reference_wavevector)
         # The demodulator divides by the apodization envelope, which amplifies noise near
         # the border; weighting by the envelope undoes that (and drops the border).
         self.fringe_weight = self.demodulator.fringe_envelope.astype(zero.dtype)
@@ -242,8 +242,13 @@ class Inverter(eqx.Module):
         self.noise_power = jnp.sum(self.noise_residuals**2) / self.noise_residuals.shape[0]
         # Integrated brightness excess per newton of a centred press: starts Fz.
         press = zero.at[2].set(1.0 / WRENCH_SCALE[2])
-        excess = self._predict(press, None).brightness - self._predict(zero, None).brightness
+        excess = self._predict_now(press, None).brightness - self._predict_now(zero, None).brightness
         self.glow_per_newton = jnp.sum(excess * self.brightness_weight)
+
+    def _predict_now(self, y, reference_wavevector) -> FringeFields:
+        # The constructor's predictions, compiled as one program: run op by op, each of the
+        # model's operations compiles on its own, which took 8 s of a first Inverter.
+        return _bands_at_state(self.device, self.demodulator, y, reference_wavevector, self.model_shape)
 
     def _predict(self, y, reference_wavevector) -> FringeFields:
         wrench, contact, exposure = _unpack(y)
@@ -453,48 +458,44 @@ class Inverter(eqx.Module):
 
         When neither converges (a strong wrong basin: a light, strongly sheared press whose
         brightness centroid misplaces the contact by 1.7 mm ended at 300x the right cost),
-        five more starts, vmapped: the contact halfway to the centre, and each shear
+        five more starts in turn: the contact halfway to the centre, and each shear
         direction at half its range.
         """
         solver = optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol, linear_solver=lx.QR())
+        fallbacks = jnp.stack(
+            [y0.at[6:8].multiply(0.5), y0.at[0].set(0.5), y0.at[0].set(-0.5), y0.at[1].set(0.5), y0.at[1].set(-0.5)]
+        )
 
-        def run(start):
+        # One solver inside a loop over the starts, not one per start: each traced solve
+        # is a copy of the whole model in the compiled program, and compilation was most of
+        # a first frame's cost (35 s with three copies).
+        def cond(carry):
+            k, _, _, _, _, more = carry
+            return (k < 2) | (more & (k < 2 + fallbacks.shape[0]))
+
+        def body(carry):
+            k, y, cost, result, steps, more = carry
+            start = jnp.where(k == 0, y0, jnp.where(k == 1, y.at[:2].set(0.0), fallbacks[jnp.clip(k - 2, 0, None)]))
             sol = optx.least_squares(self.residuals, solver, start, args=args, max_steps=self.max_steps, throw=False)
-            cost = jnp.sum(self.residuals(sol.value, args) ** 2)
-            cost = jnp.where(jnp.isfinite(cost), cost, jnp.inf)
-            return sol.value, cost, jnp.asarray(sol.stats["num_steps"], jnp.int32), sol.result
+            new_cost = jnp.sum(self.residuals(sol.value, args) ** 2)
+            better = (k == 0) | (jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf) < cost)
+            y = jnp.where(better, sol.value, y)
+            cost = jnp.where(better, jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf), cost)
+            result = optx.RESULTS.where(better, sol.result, result)
+            steps = steps + jnp.asarray(sol.stats["num_steps"], jnp.int32)
+            # After the first two starts, the fallbacks run only if neither converged.
+            more = jnp.where(k == 1, result != optx.RESULTS.successful, more)
+            return k + 1, y, cost, result, steps, more
 
-        y1, cost1, steps1, result1 = run(y0)
-        y2, cost2, steps2, result2 = run(y1.at[:2].set(0.0))
-        second = cost2 < cost1
-        y = jnp.where(second, y2, y1)
-        cost = jnp.minimum(cost1, cost2)
-        result = optx.RESULTS.where(second, result2, result1)
-        steps = steps1 + steps2
-
-        def more_starts(_):
-            starts = jnp.stack(
-                [
-                    y0.at[6:8].multiply(0.5),
-                    y0.at[0].set(0.5),
-                    y0.at[0].set(-0.5),
-                    y0.at[1].set(0.5),
-                    y0.at[1].set(-0.5),
-                ]
-            )
-            ys, costs, more_steps, results = jax.vmap(run)(starts)
-            best = jnp.argmin(costs)
-            better = costs[best] < cost
-            return (
-                jnp.where(better, ys[best], y),
-                optx.RESULTS.where(better, jax.tree_util.tree_map(lambda r: r[best], results), result),
-                steps + jnp.max(more_steps),
-            )
-
-        def keep(_):
-            return y, result, steps
-
-        y, result, steps = jax.lax.cond(result == optx.RESULTS.successful, keep, more_starts, None)
+        init = (
+            jnp.asarray(0, jnp.int32),
+            y0,
+            jnp.asarray(jnp.inf, y0.dtype),
+            optx.RESULTS.successful,
+            jnp.asarray(0, jnp.int32),
+            jnp.asarray(False),
+        )
+        _, y, _, result, steps, _ = jax.lax.while_loop(cond, body, init)
         return y, self.residuals(y, args), self._data_jacobian(y, args[0]), steps, result
 
     def _best_start(self, candidates, residuals):
@@ -656,6 +657,20 @@ class Inverter(eqx.Module):
             return estimate, done, frame_track
 
         return jax.vmap(one)(frames)
+
+
+@eqx.filter_jit
+def _bands_at_state(device: Device, demodulator: Demodulator, y, reference_wavevector, model_shape) -> FringeFields:
+    wrench, contact, exposure = _unpack(y)
+    return predicted_bands(
+        device,
+        demodulator,
+        wrench,
+        contact,
+        exposure,
+        model_shape=model_shape,
+        reference_wavevector=reference_wavevector,
+    )
 
 
 class Track(eqx.Module):
