@@ -704,6 +704,19 @@ def _status(result, screen: _Screen, observed, reference, in_contact, y):
     return status.astype(jnp.int32)
 
 
+def _over_devices(frames: Float[Array, "b h w"]) -> Float[Array, "b h w"]:
+    """Inside a jit: split a batch of frames over every device JAX sees, so a recording
+    scales to more devices with no code change; unchanged on one device, or when the batch
+    does not divide evenly (callers pad it, see [`invert_chunk`][])."""
+    devices = jax.devices()
+    if len(devices) == 1 or frames.shape[0] % len(devices):
+        return frames
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("frames",))
+    return jax.lax.with_sharding_constraint(
+        frames, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("frames"))
+    )
+
+
 @eqx.filter_jit
 def invert_frame(inverter: Inverter, frame: Float[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
     """Invert one frame, warm-started from `init` (the previous frame's `Estimate.state`)."""
@@ -714,12 +727,14 @@ def invert_frame(inverter: Inverter, frame: Float[Array, "h w"], init: Float[Arr
 def invert_batch(
     inverter: Inverter, frames: Float[Array, "b h w"], init: Float[Array, "b 10"] | None = None
 ) -> Estimate:
-    """Invert a batch of frames independently (vmapped).
+    """Invert a batch of frames independently (vmapped; split over the devices JAX sees
+    when the batch divides evenly among them).
 
     Under `vmap` the solver's fallback starts run for every frame, not only for frames
     that need them: seven Levenberg–Marquardt solves a frame. A stream is much cheaper
     through [`track_frame`][] or [`invert_sequence`][].
     """
+    frames = _over_devices(frames)
     if init is None:
         return jax.vmap(lambda f: inverter.solve(f, None))(frames)
     return jax.vmap(inverter.solve)(frames, init)
@@ -734,7 +749,7 @@ def track_frame(inverter: Inverter, frame: Float[Array, "h w"], track: Track) ->
 
 @eqx.filter_jit
 def _chord_batch(inverter: Inverter, frames, track: Track):
-    return inverter.chord_batch(frames, track)
+    return inverter.chord_batch(_over_devices(frames), track)
 
 
 @eqx.filter_jit
@@ -749,10 +764,11 @@ def invert_chunk(inverter: Inverter, frames, track: Track, batch: int) -> tuple[
     """Invert up to `batch` consecutive frames of a stream that continues from `track`.
 
     The frames go through frozen-Jacobian iterations from `track`, vectorised
-    ([`Inverter.chord_batch`][]; a short chunk is padded so one program serves all);
-    frames those do not settle are solved one by one with [`Inverter.track`][] from the
-    previous frame's track, which also starts a stream when `track` is not valid yet. Returns the estimates, in order,
-    and the track to continue from.
+    ([`Inverter.chord_batch`][]; a short chunk is padded so one program serves all) and
+    split over the devices JAX sees; frames those do not settle are solved one by one
+    with [`Inverter.track`][] from the previous frame's track, which also starts a stream
+    when `track` is not valid yet. Returns the estimates, in order, and the track to
+    continue from.
     """
     dtype = np.dtype(inverter.device.p1.dtype)
     frames = [np.asarray(f, dtype) for f in frames]
@@ -766,7 +782,10 @@ def invert_chunk(inverter: Inverter, frames, track: Track, batch: int) -> tuple[
         out[start], track = track_frame(inverter, frames[start], track)
         start += 1
     if start < n:
-        stack = np.stack(frames[start:] + [frames[-1]] * (batch - (n - start)))
+        # Padded to the chunk size (one program serves all), and up to a whole number of
+        # frames per device.
+        size = -(-batch // jax.device_count()) * jax.device_count()
+        stack = np.stack(frames[start:] + [frames[-1]] * (size - (n - start)))
         estimates, accepted, tracks = _chord_batch(inverter, stack, track)
         # One transfer, then numpy slicing: a device slice per field and frame costs more
         # than a frame's solve.

@@ -1,3 +1,7 @@
+import os
+import subprocess
+import sys
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -164,3 +168,22 @@ def test_tracking_recovers_from_a_jump_to_an_unrelated_load(mid, inverter, strea
     assert Status(int(estimate.status)) == Status.CONVERGED
     error = np.abs(np.asarray(estimate.wrench) - [-0.1, 0.08, 1.0, 0.0, 0.0, -0.004]) / WRENCH_SCALE
     assert np.all(error < 0.08), error
+
+
+def test_batches_are_split_over_the_devices_jax_sees():
+    # A fresh interpreter that sees two CPU devices. (The inversion itself was run this way:
+    # the whole of this file passes with XLA_FLAGS=--xla_force_host_platform_device_count=2.)
+    code = """
+import jax, jax.numpy as jnp
+from moirejax._inversion import _over_devices
+energy = jax.jit(lambda x: jax.vmap(lambda a: jnp.sum(a**2))(_over_devices(x)))
+x = jnp.arange(24.0).reshape(4, 3, 2)
+out = energy(x)
+assert len(out.sharding.device_set) == 2, out.sharding
+assert bool(jnp.all(out == jnp.sum(x**2, axis=(1, 2))))
+assert len(jax.jit(_over_devices)(x[:3]).sharding.device_set) == 1  # 3 frames do not split in 2
+print("split")
+"""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "split" in result.stdout, result.stderr
