@@ -276,7 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--optimise", action="store_true", help="minimise the worst-axis relative bound (--write saves the optimum)"
     )
-    p.add_argument("--steps", type=int, default=150, help="optimiser steps")
+    p.add_argument("--steps", type=int, default=300, help="optimiser steps")
     p.add_argument("--min-pitch", type=float, default=0.15, help="smallest pitch the laser can cut, mm")
     p.set_defaults(run=_cmd_design)
 
