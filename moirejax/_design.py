@@ -130,8 +130,43 @@ def format_design_table(table: dict[str, Any]) -> str:
             lines.append(f"  {key.replace('_', ' ')}:")
             for name, value in table[key].items():
                 lines.append(f"    {name:32s} {value:.4g}" if isinstance(value, float) else f"    {name:32s} {value}")
+    if "optimisation" in table:
+        lines.extend(_format_optimisation(table["optimisation"]))
     lines.append("  note: " + table["differences"])
     return "\n".join(lines)
+
+
+def _format_optimisation(report: dict[str, Any]) -> list[str]:
+    """The start and the optimum of [`optimise_design`][] side by side."""
+    start, best = report["start"], report["optimum"]
+    rows = [
+        ("p1 (mm)", "p1_mm"),
+        ("p2 (mm)", "p2_mm"),
+        ("delta alpha (deg)", "delta_alpha_deg"),
+        ("a (mm)", "a_mm"),
+        ("duty 1", "duty1"),
+        ("duty 2", "duty2"),
+        ("moire period (mm)", "period_mm"),
+        ("stray-beat clearance", "stray_beat_clearance"),
+    ]
+    lines = [
+        f"  optimisation ({report['steps']} steps, {report['seconds']:.0f} s):",
+        f"    {'':32s} {'start':>12s} {'optimum':>12s}",
+    ]
+    lines += [f"    {label:32s} {start[key]:12.4g} {best[key]:12.4g}" for label, key in rows]
+    for axis in start["rel_crb"]:
+        lines.append(f"    {'CRB/range ' + axis:32s} {start['rel_crb'][axis]:12.3e} {best['rel_crb'][axis]:12.3e}")
+    lines.append(f"    {'worst axis':32s} {start['worst_axis']:>12s} {best['worst_axis']:>12s}")
+    lines.append(
+        f"    {'twist phase range (rad)':32s} {start['phase_range_rad']['tz']:12.3g} {best['phase_range_rad']['tz']:12.3g}"
+    )
+    lines.append(f"    {'within limits':32s} {start['within_limits']!s:>12s} {best['within_limits']!s:>12s}")
+    lines.append(
+        f"    worst-axis bound, optimum / start: {best['worst_rel_crb'] / start['worst_rel_crb']:.3f}"
+        + ("" if report["feasible"] else " (no iterate met the limits: the last one is shown)")
+    )
+    lines.append("    " + report["estimator"])
+    return lines
 
 
 def plot_design_maps(path, device: Device | None = None) -> None:

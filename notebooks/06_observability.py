@@ -207,7 +207,7 @@ display(Image(filename=str(path)))
 # fringes near the contact edge by about $2\pi$.
 #
 # In smoke mode the search takes three steps on a small frame without the phase-range limit: it
-# demonstrates the call, nothing more. The full run (150 steps, a minute or two on a laptop CPU) is
+# demonstrates the call, nothing more. The full run (300 steps, a minute or two on a laptop CPU) is
 # the one to read.
 
 # %%
@@ -244,13 +244,17 @@ fig.tight_layout()
 plt.show()
 
 # %% [markdown]
-# What a full run from Mid finds (150 steps, 512 x 512 frame): the penalty first pulls the twist
+# What a full run from Mid finds (300 steps, 512 x 512 frame): the penalty first pulls the twist
 # phase range under $\pi$ by making the upper grating coarser (p1 roughly doubles), which lowers the
 # phase change per newton of every axis; the search then spends the rest of its budget on the
-# bounds, ending a few percent better than Mid on the worst axis (shear) with a *denser* moiré of
-# lower amplification. Amplification is not what the noise-limited bound asks for: fringes enough
-# to cover the contact, contrast, and no wrapping. The geometry of the result against Mid's
-# (notebook 01):
+# bounds, ending 7% better than Mid on the worst axis (shear), with lower amplification.
+# Amplification is not what the noise-limited bound asks for: fringes enough to cover the contact,
+# contrast, and no wrapping. Read the result with three caveats (`benchmarks/design_check.py`):
+# the efficient estimator (`refine_in_pixels`) confirms it on simulated frames (worst-axis scatter
+# 0.90x Mid's); the band inversion of `invert` does not, because the bound counts the information in
+# every pixel, the grating carriers' included, which the bands leave out (5x worse than Mid on
+# shear); and with 2 or 5 grating harmonics instead of 3 the ranking reverses (1.04x, 1.05x).
+# The geometry of the result against Mid's (notebook 01):
 
 # %%
 for name, design in (("optimum", optimum), ("Mid", mj.preset("mid"))):

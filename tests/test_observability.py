@@ -9,6 +9,7 @@ import pytest
 
 import moirejax as mj
 from moirejax._contact import Contact
+from moirejax._design import format_design_table
 from moirejax._geometry import moire_orientation
 from moirejax._observability import (
     _sensitivity_arrays,
@@ -195,6 +196,9 @@ def test_optimise_design_reduces_objective_within_limits():
     period = 2 * np.pi / np.linalg.norm(np.asarray(optimum.moire_wavevectors()), axis=-1)
     assert np.all(period >= 8 / px * 0.99)
     assert json.loads(json.dumps(report)) == report
+    # `moirejax design --optimise` prints the start and the optimum side by side.
+    text = format_design_table({**mj.design_table(device), "optimisation": report})
+    assert f"{report['optimum']['p1_mm']:12.4g}" in text and "optimum / start" in text
 
 
 def test_phase_range_of_mid_twist_wraps():
