@@ -730,9 +730,9 @@ def invert_batch(
     """Invert a batch of frames independently (vmapped; split over the devices JAX sees
     when the batch divides evenly among them).
 
-    Under `vmap` the solver's fallback starts run for every frame, not only for frames
-    that need them: seven Levenberg–Marquardt solves a frame. A stream is much cheaper
-    through [`track_frame`][] or [`invert_sequence`][].
+    Under `vmap` the frames run the solver's starts in lockstep: when one frame of the
+    batch needs the five fallback starts, every frame pays for seven Levenberg–Marquardt
+    solves. A stream is much cheaper through [`track_frame`][] or [`invert_sequence`][].
     """
     frames = _over_devices(frames)
     if init is None:
