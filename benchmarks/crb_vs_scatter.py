@@ -38,7 +38,7 @@ from moirejax._contact import Contact
 from moirejax._inversion import initial_state, invert_frame, Inverter, WRENCH_SCALE
 from moirejax._observability import cramer_rao, nominal_load
 from moirejax._pixel_fit import refine_in_pixels
-from moirejax._render import HighFidelity, render_frame
+from moirejax._render import camera_noise, HighFidelity, render_frame
 
 
 AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
@@ -108,13 +108,11 @@ def main(argv=None):
 
     # Shot and read noise as a Gaussian of their variance, then 8-bit quantisation (whose
     # uniform rounding error completes the variance the bound assumes).
-    shot_read = jnp.sqrt(jnp.clip(clean, 0.0, 1.0) * noise.full_well + noise.read_noise**2) / noise.full_well
-    levels = 2**noise.bit_depth - 1
+    camera = jax.jit(lambda key: camera_noise(key, clean, noise))
     estimates, fits = [], []
     band_seconds = pixel_seconds = 0.0
     for i in range(args.frames):
-        draw = clean + shot_read * jax.random.normal(jax.random.PRNGKey(i), clean.shape)
-        frame = jnp.round(jnp.clip(draw, 0.0, 1.0) * levels) / levels
+        frame = camera(jax.random.PRNGKey(i))
         start = time.perf_counter()
         estimates.append(jax.block_until_ready(invert_frame(inverter, frame)))
         band_seconds += time.perf_counter() - start

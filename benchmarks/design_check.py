@@ -49,7 +49,7 @@ from moirejax._inversion import invert_frame, Inverter
 from moirejax._observability import axis_ranges, cramer_rao, nominal_load, optimise_design
 from moirejax._optics import binary_harmonics, gaussian_mtf
 from moirejax._pixel_fit import refine_in_pixels
-from moirejax._render import HighFidelity, render_frame
+from moirejax._render import camera_noise, HighFidelity, render_frame
 from moirejax._simulate import load_schedule
 
 
@@ -61,14 +61,6 @@ BAND_FRACTION = 0.45
 HARMONICS = (2, 3, 5)
 # Mechanics grid of the pixel check's frames, bound and fits (refine_in_pixels' default).
 PIXEL_MECHANICS = (64, 64)
-
-
-def _camera(key, clean, noise: HighFidelity):
-    """`render_frame_high`'s camera on a noise-free frame: shot and read noise, then quantisation."""
-    electrons = jnp.clip(clean, 0.0, None) * noise.full_well
-    noisy = electrons + jnp.sqrt(electrons + noise.read_noise**2) * jax.random.normal(key, clean.shape)
-    levels = 2**noise.bit_depth - 1
-    return jnp.clip(jnp.round(noisy / noise.full_well * levels), 0, levels) / levels
 
 
 def _per_axis(values, digits=6) -> dict[str, float]:
@@ -151,7 +143,7 @@ def _check(design, loads, nominal, repeats: int, noise: HighFidelity, rel_crb: d
     render = jax.jit(lambda w, x0, y0, r: render_frame(design, w, Contact(x0, y0, r)))
     reference = jnp.clip(render(jnp.zeros(6), 0.0, 0.0, 3.5), 0.0, 1.0)
     inverter = Inverter(design, reference=reference, model_shape=model_shape)
-    camera = jax.jit(lambda key, clean: _camera(key, clean, noise))
+    camera = jax.jit(lambda key, clean: camera_noise(key, clean, noise))
 
     def invert(frame):
         estimate = invert_frame(inverter, frame)
@@ -210,7 +202,7 @@ def _pixel_check(design, nominal, repeats: int, noise: HighFidelity, model_shape
     render = lambda w, c: render_frame(design, w, c, mechanics_shape=PIXEL_MECHANICS)
     inverter = Inverter(design, reference=render(jnp.zeros(6), Contact()), model_shape=model_shape)
     clean = render(wrench, contact)
-    camera = jax.jit(lambda key: _camera(key, clean, noise))
+    camera = jax.jit(lambda key: camera_noise(key, clean, noise))
     bound = cramer_rao(design, wrench, contact, noise, mechanics_shape=PIXEL_MECHANICS)
     crb = np.array([bound["std"][a] for a in WRENCH_AXES], np.float64)
     fits, converged = [], 0

@@ -254,7 +254,12 @@ def render_frame_high(
     radiance = separable_gaussian_blur(radiance, device.optics.psf_sigma * s, radius=3 * s)
     # Pixel integration: box average of the supersamples.
     radiance = radiance.reshape(device.height, s, device.width, s).mean(axis=(1, 3))
-    clean = camera_response(device, radiance, exposure)
+    return camera_noise(key, camera_response(device, radiance, exposure), fidelity)
+
+
+def camera_noise(key: PRNGKeyArray, clean: Float[Array, "h w"], fidelity: HighFidelity) -> Float[Array, "h w"]:
+    """The camera of a `high`-fidelity frame on a noise-free one: shot and read noise at
+    `fidelity.full_well` and `fidelity.read_noise`, then quantisation to `fidelity.bit_depth`."""
     electrons = jnp.clip(clean, 0, None) * fidelity.full_well
     # Shot and read noise together: Gaussian with the Poisson variance plus the read variance.
     noisy = electrons + jnp.sqrt(electrons + fidelity.read_noise**2) * jr.normal(key, electrons.shape)
