@@ -37,6 +37,25 @@ def finite_difference_jvp(fn, primals, tangents, eps=1e-6):
     return out, tangent_out
 
 
+def finite_difference_jacobian(fn, x, steps) -> np.ndarray:
+    """Rows: central differences of the flattened output of `fn` along each coordinate of
+    the vector `x`, coordinate `i` stepped by `steps[i]`. Use in float64 only."""
+    x = np.asarray(x, np.float64)
+    rows = []
+    for i, h in enumerate(steps):
+        e = np.zeros_like(x)
+        e[i] = h
+        rows.append(((np.asarray(fn(x + e)) - np.asarray(fn(x - e))) / (2 * h)).ravel())
+    return np.stack(rows)
+
+
+def camera_variance(frame, full_well: float, read_noise: float, bits: int = 8) -> np.ndarray:
+    """The camera's pixel variance written out by hand (frame units): Poisson plus read
+    variance in electrons, and the uniform rounding error of `bits`-bit quantisation."""
+    v = np.clip(np.asarray(frame), 0, 1)
+    return (v * full_well + read_noise**2) / full_well**2 + 1 / (12 * (2**bits - 1) ** 2)
+
+
 def check_grad_against_fd(fn, x, *, eps=1e-6, rtol=FD_RTOL, atol=FD_ATOL, key=None):
     """Compare `jax.jvp` of a scalar- or array-valued `fn` with central differences.
 

@@ -25,6 +25,8 @@ from moirejax._observability import (
 )
 from moirejax._render import HighFidelity, render_frame
 
+from .helpers import camera_variance, finite_difference_jacobian
+
 
 def _small(**kwargs):
     # A coarse frame: only the numerics of the Fisher information are under test here.
@@ -46,16 +48,9 @@ def test_fisher_information_matches_finite_difference_jacobian():
         t = jnp.asarray(t)
         return np.asarray(render_frame(device, t[:6], Contact(x0=t[6], y0=t[7], radius=t[8]), mechanics_shape=shape))
 
-    steps = np.array([1e-5, 1e-5, 1e-5, 1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5])
-    columns = []
-    for i, h in enumerate(steps):
-        e = np.zeros(9)
-        e[i] = h
-        columns.append(((frame(theta + e) - frame(theta - e)) / (2 * h)).ravel())
-    J = np.stack(columns)
-    # The camera model by hand: Poisson + read variance in electrons, 8-bit rounding.
+    J = finite_difference_jacobian(frame, theta, [1e-5] * 3 + [1e-7] * 3 + [1e-5] * 3)
     v = frame(theta).ravel()
-    variance = (np.clip(v, 0, 1) * 3000.0 + 25.0) / 3000.0**2 + 1 / (12 * 255.0**2)
+    variance = camera_variance(v, full_well=3000.0, read_noise=5.0)
     weight = np.where((v > 0) & (v < 1), 1 / variance, 0.0)
     F_fd = (J * weight) @ J.T
     scale = np.sqrt(np.outer(np.diag(F_fd), np.diag(F_fd)))

@@ -14,6 +14,8 @@ from moirejax._observability import fisher_information, pixel_noise_variance
 from moirejax._pixel_fit import refine_in_pixels
 from moirejax._render import HighFidelity, render_frame
 
+from .helpers import camera_variance, finite_difference_jacobian
+
 
 # A coarse frame and mechanics grid: only the numerics of the fit are under test here.
 SHAPE = (32, 32)
@@ -70,15 +72,8 @@ def test_covariance_is_the_inverse_fisher_information():
         contact = Contact(x0=t[6], y0=t[7], radius=t[8])
         return np.asarray(render_frame(device, jnp.asarray(t[:6]), contact, exposure=t[9], mechanics_shape=SHAPE))
 
-    steps = np.array([1e-5, 1e-5, 1e-5, 1e-7, 1e-7, 1e-7, 1e-5, 1e-5, 1e-5, 1e-5])
-    columns = []
-    for i, h in enumerate(steps):
-        e = np.zeros(10)
-        e[i] = h
-        columns.append(((render(theta + e) - render(theta - e)) / (2 * h)).ravel())
-    J = np.stack(columns)
-    v = np.asarray(frame).ravel()
-    variance = (np.clip(v, 0, 1) * 3000.0 + 25.0) / 3000.0**2 + 1 / (12 * 255.0**2)
+    J = finite_difference_jacobian(render, theta, [1e-5] * 3 + [1e-7] * 3 + [1e-5] * 4)
+    variance = camera_variance(frame, full_well=3000.0, read_noise=5.0).ravel()
     information = (J / variance) @ J.T
     covariance = np.linalg.inv(information)[:6, :6]
     scale = np.sqrt(np.outer(np.diag(covariance), np.diag(covariance)))
