@@ -86,6 +86,7 @@ from ._observables import (
 from ._pixel_fit import PixelFit as PixelFit, refine_in_pixels as refine_in_pixels
 from ._reference import match_reference_geometry as match_reference_geometry
 from ._render import (
+    camera_noise as camera_noise,
     deformation as deformation,
     HighFidelity as HighFidelity,
     render_frame as render_frame,
