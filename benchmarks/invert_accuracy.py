@@ -49,7 +49,9 @@ def main(argv=None):
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--noise", type=float, default=0.01)
+    parser.add_argument("--model-shape", type=int, default=None, help="inversion model grid (default: model_grid_for)")
     args = parser.parse_args(argv)
+    grid = None if args.model_shape is None else (args.model_shape, args.model_shape)
 
     device = mj.preset("mid")
     schedule = load_schedule("mixed", args.frames + 8, seed=11)
@@ -69,20 +71,21 @@ def main(argv=None):
     sub = types.SimpleNamespace(x0=schedule.x0[keep], y0=schedule.y0[keep])
     result = {}
     start = time.perf_counter()
-    inverter = Inverter(device, reference=reference)
+    inverter = Inverter(device, reference=reference, model_shape=grid)
     result["noise_free"] = _summary(truth, invert_frames(inverter, clean, progress=False), sub)
     reference_noisy = np.mean([noisy(reference) for _ in range(8)], axis=0)
-    inverter = Inverter(device, reference=reference_noisy)
+    inverter = Inverter(device, reference=reference_noisy, model_shape=grid)
     result["noisy"] = _summary(truth, invert_frames(inverter, [noisy(f) for f in clean], progress=False), sub)
 
     with tempfile.TemporaryDirectory() as tmp:
         data = simulate_dataset(Path(tmp) / "unit", device, "mixed", args.frames + 8, seed=3, progress=False)
         dataset = mj.Dataset(data)
         idx = np.flatnonzero(dataset.contact)[: args.frames]
-        inverter = Inverter(device, reference=dataset_reference(dataset))
+        inverter = Inverter(device, reference=dataset_reference(dataset), model_shape=grid)
         inverted = invert_frames(inverter, [dataset.frame(int(i)) for i in idx], progress=False)
         result["high_fidelity_uncalibrated"] = _summary(dataset.wrenches[idx], inverted)
     result["frames"] = int(len(keep))
+    result["model_grid"] = list(inverter.model_shape)
     result["noise"] = args.noise
     result["elapsed_s"] = round(time.perf_counter() - start, 1)
     if args.json:

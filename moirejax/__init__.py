@@ -57,6 +57,7 @@ from ._geometry import (
     shear_amplification as shear_amplification,
 )
 from ._inversion import (
+    default_model_shape as default_model_shape,
     Estimate as Estimate,
     invert_batch as invert_batch,
     invert_chunk as invert_chunk,

@@ -136,7 +136,7 @@ def refine_in_pixels(
     - `tolerance`: the largest last step, in standard errors of each unknown, that counts
       as converged.
     - `mechanics_shape`: grid of the elastomer solve; use the grid that rendered the frame
-      (64 x 64 against [`render_frame`][]'s default 128 x 128 already changes pixels by a
+      (64 x 64 against [`render_frame`][]'s default 256 x 256 already changes pixels by a
       few percent of their noise, which a fit of every pixel sees).
 
     **Returns:** a [`PixelFit`][]; its covariance is the Cramér–Rao bound at the solution

@@ -83,7 +83,11 @@ def grating_phases(
 
 
 def _upsample(field: Float[Array, "*c h w"], shape: tuple[int, int]) -> Float[Array, "*c H W"]:
-    return jax.image.resize(field, (*field.shape[:-2], *shape), method="linear")
+    # Cubic, not linear: the upper grating multiplies the displacement by |k1| (about
+    # 9 rad/mm), so linear interpolation's curvature error h^2 u''/8 near a contact shows
+    # as a fringe-phase bias. From a 128 grid it moved pixels by 0.05 of full scale and
+    # biased the recovered shear by 1-2% of range; cubic cuts that threefold.
+    return jax.image.resize(field, (*field.shape[:-2], *shape), method="cubic")
 
 
 def render_deformed(
@@ -127,7 +131,7 @@ def render_frame(
     contact: Contact,
     *,
     exposure: ArrayLike = 1.0,
-    mechanics_shape: tuple[int, int] = (128, 128),
+    mechanics_shape: tuple[int, int] = (256, 256),
 ) -> Float[Array, "h w"]:
     """Render the `model`-fidelity frame (float, unclipped, noise-free) of `device` under `wrench`.
 
@@ -137,8 +141,11 @@ def render_frame(
     - `wrench`: `[fx, fy, fz, tx, ty, tz]` in N and N·m (moirejax wrench convention).
     - `contact`: the [`Contact`][] patch carrying the load.
     - `exposure`: multiplies the radiance (an exposure or illumination change).
-    - `mechanics_shape`: grid on which the elastomer is solved; the displacement is smooth
-      on the scale of the layer thickness, so a grid much coarser than the image suffices.
+    - `mechanics_shape`: grid on which the elastomer is solved, then interpolated
+      (cubic) to the pixels. The displacement is smooth on the scale of the layer
+      thickness, but a small contact's edge is not: the default 256 x 256 (0.13 mm on
+      the Mid design) stays within 0.003 of full scale of a 1024 x 1024 solve, where
+      128 x 128 strayed by 0.017 (0.05 with linear interpolation) beside a 2.6 mm contact.
 
     **Returns:** the frame, shape `(device.height, device.width)`, in camera units (about 0..1).
     """
@@ -212,7 +219,7 @@ def render_frame_high(
     fidelity: HighFidelity = HighFidelity(),
     *,
     exposure: ArrayLike = 1.0,
-    mechanics_shape: tuple[int, int] = (128, 128),
+    mechanics_shape: tuple[int, int] = (256, 256),
     fabrication_key: PRNGKeyArray | None = None,
 ) -> Float[Array, "h w"]:
     """Render a `high`-fidelity frame, noisy and quantised to `fidelity.bit_depth` (values in [0, 1]).

@@ -220,7 +220,9 @@ def test_stray_beats_in_a_band_are_found_and_refused():
         mj.Inverter(rational)
 
 
-def test_model_grid_resolves_the_moire_period():
-    assert mj.model_grid_for(mj.preset("mid")) == (64, 64)  # 4.2 mm period over 32 mm
+def test_model_grid_resolves_the_moire_period_and_the_contact():
+    # Mid: 6 samples per 2.5 mm contact radius over the 40 mm contact surface.
+    assert mj.model_grid_for(mj.preset("mid")) == (96, 96)
+    assert mj.model_grid_for(mj.preset("mid"), samples_per_radius=4) == (64, 64)  # 4.2 mm period: 61 samples
     n, _ = mj.model_grid_for(mj.preset("dense"))  # 0.8 mm period: 8 samples each
     assert n % 16 == 0 and 8 * 32 / 0.8 <= n < 8 * 32 / 0.8 + 16
