@@ -47,7 +47,7 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     )
     plot_design_maps(out_dir / "design_maps.png")
 
-    n_cal, n_test = (40, 16) if smoke else (120, 40)
+    n_cal, n_test = (32, 12) if smoke else (120, 40)
     nominal = preset("mid")
     save_device(out_dir / "mid.json", nominal)
     print(
