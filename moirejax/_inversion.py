@@ -385,7 +385,7 @@ class Inverter(eqx.Module):
         whole (a stray peak can sit anywhere), but right where that one is misled: a light
         press with strong shear or twist, whose glow is faint and off-centre.
         """
-        change = jnp.sum(jnp.abs(observed.fringe - self.reference.fringe) ** 2, axis=0) * self.fringe_weight[0] ** 2
+        change = jnp.sum(jnp.abs(observed.fringe - self.reference.fringe) ** 2 * self.fringe_weight**2, axis=0)
         x, y = self.demodulator.coarse_grid()
         peak = jnp.argmax(change)
         window = jnp.exp(-0.5 * ((x - x.ravel()[peak]) ** 2 + (y - y.ravel()[peak]) ** 2) / 3.0**2)

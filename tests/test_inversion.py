@@ -57,6 +57,14 @@ def test_default_grid_follows_the_fringes_under_a_small_twisted_contact(mid, mon
     assert np.all(np.abs(scaled_error) < 0.04), scaled_error
 
 
+def test_fringe_change_centre_finds_a_sheared_contact(mid, inverter):
+    # The cold solve's extra start: where the fringes moved, for a light, sheared press.
+    contact = Contact(3.0, -2.0, 3.0)
+    frame = render_frame(mid, jnp.array([0.15, -0.1, 0.3, 0.0, 0.0, 0.004]), contact)
+    centre = np.asarray(inverter.fringe_change_centre(inverter.observe(frame)))
+    assert np.hypot(centre[0] - 3.0, centre[1] + 2.0) < 1.0, centre
+
+
 def test_model_grid_can_be_set_by_the_environment(mid, monkeypatch):
     monkeypatch.setenv("MOIREJAX_MODEL_GRID", "48")
     assert mj.default_model_shape(mid) == (48, 48)
