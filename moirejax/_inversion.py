@@ -351,16 +351,9 @@ class Inverter(eqx.Module):
         gives Tx, Ty."""
         excess = (observed.brightness - self.reference.brightness) * self.brightness_weight
         positive = jnp.maximum(excess, 0.0)
-        x, y = self.demodulator.coarse_grid()
         # Centroid of the excess in a window around its peak: the band-limited brightness
         # rings, and a global centroid would be pulled to the image centre.
-        peak = jnp.argmax(positive)
-        window = jnp.exp(-0.5 * ((x - x.ravel()[peak]) ** 2 + (y - y.ravel()[peak]) ** 2) / 3.0**2)
-        local = positive * window
-        total = jnp.sum(local) + 1e-12
-        to_surface = (self.device.Z + self.device.a) / self.device.Z
-        x0 = jnp.sum(local * x) / total * to_surface
-        y0 = jnp.sum(local * y) / total * to_surface
+        x0, y0 = self._peak_centroid(positive)
         fz = jnp.clip(jnp.sum(excess) / self.glow_per_newton, 0.0, 3.0)
         y_init = initial_state(dtype=excess.dtype)
         scale = jnp.asarray(WRENCH_SCALE, excess.dtype)
@@ -386,12 +379,18 @@ class Inverter(eqx.Module):
         press with strong shear or twist, whose glow is faint and off-centre.
         """
         change = jnp.sum(jnp.abs(observed.fringe - self.reference.fringe) ** 2 * self.fringe_weight**2, axis=0)
+        return jnp.stack(self._peak_centroid(change))
+
+    def _peak_centroid(self, weight: Float[Array, "m n"]) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        """Centroid of a non-negative coarse-grid field in a 3 mm window around its peak,
+        in mm on the contact surface."""
         x, y = self.demodulator.coarse_grid()
-        peak = jnp.argmax(change)
+        peak = jnp.argmax(weight)
         window = jnp.exp(-0.5 * ((x - x.ravel()[peak]) ** 2 + (y - y.ravel()[peak]) ** 2) / 3.0**2)
-        local = change * window
+        local = weight * window
+        total = jnp.sum(local) + 1e-12
         to_surface = (self.device.Z + self.device.a) / self.device.Z
-        return jnp.stack([jnp.sum(local * x), jnp.sum(local * y)]) / (jnp.sum(local) + 1e-30) * to_surface
+        return jnp.sum(local * x) / total * to_surface, jnp.sum(local * y) / total * to_surface
 
     def cold_track(self) -> "Track":
         """The [`Track`][] of a stream before its first frame (or after a reset)."""

@@ -83,8 +83,8 @@ def grating_phases(
 
 
 def _upsample(field: Float[Array, "*c h w"], shape: tuple[int, int]) -> Float[Array, "*c H W"]:
-    # Cubic, not linear: the upper grating multiplies the displacement by |k1| (about
-    # 9 rad/mm), so linear interpolation's curvature error h^2 u''/8 near a contact shows
+    # Cubic, not linear: the upper grating multiplies the displacement by |k1| (18
+    # rad/mm on Mid), so linear interpolation's curvature error h^2 u''/8 near a contact shows
     # as a fringe-phase bias. From a 128 grid it moved pixels by 0.05 of full scale and
     # biased the recovered shear by 1-2% of range; cubic cuts that threefold.
     return jax.image.resize(field, (*field.shape[:-2], *shape), method="cubic")
@@ -143,8 +143,8 @@ def render_frame(
     - `exposure`: multiplies the radiance (an exposure or illumination change).
     - `mechanics_shape`: grid on which the elastomer is solved, then interpolated
       (cubic) to the pixels. The displacement is smooth on the scale of the layer
-      thickness, but a small contact's edge is not: the default 256 x 256 (0.13 mm on
-      the Mid design) stays within 0.003 of full scale of a 1024 x 1024 solve, where
+      thickness, but a small contact's edge is not: the default 256 x 256 (0.16 mm on
+      the Mid design's contact surface) stays within 0.003 of full scale of a 1024 x 1024 solve, where
       128 x 128 strayed by 0.017 (0.05 with linear interpolation) beside a 2.6 mm contact.
 
     **Returns:** the frame, shape `(device.height, device.width)`, in camera units (about 0..1).
