@@ -3,6 +3,7 @@
 import argparse
 import json
 import math
+import os
 import sys
 from collections.abc import Sequence
 
@@ -370,10 +371,32 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def use_compilation_cache() -> str | None:
+    """Keep compiled programs on disk between runs of the command; returns the folder used.
+
+    Compiling the inversion takes 10-20 s on a laptop CPU, paid again by every `invert`,
+    `live` or `calibrate` that meets the same design and frame size. JAX's persistent cache
+    turns that into a second. The folder is the user's own `JAX_COMPILATION_CACHE_DIR` if
+    set, else `$XDG_CACHE_HOME/moirejax/jax` (`~/.cache/moirejax/jax`);
+    `MOIREJAX_COMPILATION_CACHE=0` turns it off. Call it before anything is compiled.
+    """
+    import jax
+
+    if os.environ.get("MOIREJAX_COMPILATION_CACHE", "1") == "0":
+        return None
+    if jax.config.jax_compilation_cache_dir:
+        return jax.config.jax_compilation_cache_dir
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    folder = os.path.join(base, "moirejax", "jax")
+    jax.config.update("jax_compilation_cache_dir", folder)
+    return folder
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `moirejax` command. Returns the process exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    use_compilation_cache()
     try:
         return args.run(args)
     except (ValueError, DataError, FileNotFoundError) as e:

@@ -131,8 +131,10 @@ class Device(eqx.Module):
     px_per_mm: Float[Array, ""] = eqx.field(converter=_scalar, default=16.0)
     height: int = eqx.field(static=True, default=512)
     width: int = eqx.field(static=True, default=512)
-    elastomer: Elastomer = Elastomer()
-    optics: Optics = Optics()
+    # Factories, not instances: an instance made at import would fix its arrays' dtype to the
+    # precision JAX had then, and mix it with the precision of every later computation.
+    elastomer: Elastomer = eqx.field(default_factory=Elastomer)
+    optics: Optics = eqx.field(default_factory=Optics)
     tilt: Float[Array, "2 2"] = eqx.field(
         converter=lambda x: jnp.asarray(x, dtype=float), default=((0.0, 0.0), (0.0, 0.0))
     )

@@ -63,7 +63,7 @@ SMOKE = os.environ.get("MOIREJAX_SMOKE") == "1"
 # spectral bins as A's: the inversion's band windows are static, so the two units share the
 # compiled inversion and calibration programs (a unit with another fringe period compiles its own).
 SEED_A, SEED_B = 3, 43
-TRANSFER_FRAMES = 20
+TRANSFER_FRAMES = 10 if SMOKE else 20
 # Unit A's calibration session. In smoke mode unit A is fitted with the transfer recipe's
 # parameters on exactly as many frames as the transfer uses, so that both fits run the same
 # compiled solver; at full size it gets the default recipe on a full session.

@@ -3,6 +3,9 @@
 import csv
 import json
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -34,6 +37,7 @@ def datasets(tmp_path_factory):
     return root
 
 
+@pytest.mark.usefixtures("float32")
 def test_calibrate_evaluate_transfer(datasets):
     root = datasets
     summary = calibrate(
@@ -147,6 +151,7 @@ def test_import_cli_round_trip(tmp_path, datasets, capsys):
     assert "tz" in capsys.readouterr().err
 
 
+@pytest.mark.usefixtures("float32")
 def test_invert_cli_writes_status_rows(tmp_path, datasets):
     frames = tmp_path / "frames"
     export_recording(Dataset(datasets / "test"), frames, tmp_path / "ft.csv")
@@ -169,6 +174,22 @@ def test_invert_cli_writes_status_rows(tmp_path, datasets):
 def _number(text: str) -> float | None:
     value = float(text)
     return value if math.isfinite(value) else None
+
+
+@pytest.mark.parametrize("setting", ["default", "own", "off"])
+def test_commands_keep_compiled_programs_in_a_cache_folder(tmp_path, setting):
+    # A fresh process: the choice must be made before JAX compiles anything.
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "MOIREJAX_COMPILATION_CACHE")}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
+    if setting == "own":
+        env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "own")
+    if setting == "off":
+        env["MOIREJAX_COMPILATION_CACHE"] = "0"
+    code = "import jax; from moirejax._cli import use_compilation_cache as u; print(u(), jax.config.jax_compilation_cache_dir)"
+    result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    expected = {"default": str(tmp_path / "xdg" / "moirejax" / "jax"), "own": str(tmp_path / "own"), "off": "None"}
+    assert result.stdout.split() == [expected[setting]] * 2
 
 
 def test_readme_cli_reference_is_current():
@@ -194,6 +215,7 @@ def test_fitted_preset_in_fits_loads_with_its_head():
     assert abs(corrected[0, 2] - 0.6) < 0.1
 
 
+@pytest.mark.usefixtures("float32")
 def test_demo_runs_end_to_end_in_smoke_mode(tmp_path, capsys):
     from moirejax._demo import run_demo
 
