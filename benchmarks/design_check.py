@@ -15,7 +15,7 @@
    mechanics grid): the bound is the scatter of an efficient estimator, so this is where
    a ranking by the bound should show after inversion.
 3. The same loads without noise: the error left is the model floor (the renderer's
-   128 x 128 mechanics, full-resolution image and every grating harmonic it keeps, against
+   256 x 256 mechanics, full-resolution image and every grating harmonic it keeps, against
    the inversion's `--model-shape` grid and band model), not noise. The noise-driven
    error, what the bound predicts, is the RMS of (noisy estimate - noise-free estimate)
    of the same load.
