@@ -490,7 +490,7 @@ class Inverter(eqx.Module):
     def _data_jacobian(self, y, observed):
         return jax.jacfwd(self._data_residuals)(y, observed)
 
-    def _levenberg_marquardt(self, y0, args):
+    def _levenberg_marquardt(self, y0, args, *, more_starts: bool = True):
         """Levenberg–Marquardt from `y0`, then again from its solution with the shear
         forces zeroed; the lower cost wins.
 
@@ -509,6 +509,14 @@ class Inverter(eqx.Module):
         calls converged: on 200 mixed noise-free and noisy loads, correct fits left at most
         0.14% unexplained and two wrong ones (Fx 116% and Fy 35% of range off) 1.3-1.8%.
         A faint contact in noise also leaves much unexplained and pays for the extra starts.
+
+        `more_starts=False` (streams) stops after the first two starts. On a `high`-fidelity
+        recording of an uncalibrated unit with illumination drift, right fits leave 0.3-3%
+        unexplained (6% without contact) and faint presses often end at `max_steps`, so the
+        six starts ran at most cold solves and took them from 0.7 to 2-3.5 s, which a live
+        stream pays in dropped frames at each contact onset. A stream's cold start is usually
+        a light press at contact onset, the stream follows the load from there, and a frame
+        that did not converge is retried cold on the next frame.
         """
         solver = optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol, linear_solver=lx.QR())
         zero_cost = jnp.sum(self._zero_residuals(args[0]) ** 2)
@@ -544,7 +552,7 @@ class Inverter(eqx.Module):
             # After the first two starts, the fallbacks run only if neither converged or
             # the better one explains the frame poorly.
             poor = cost > _UNEXPLAINED * zero_cost
-            more = jnp.where(k == 1, (result != optx.RESULTS.successful) | poor, more)
+            more = jnp.where(k == 1, more_starts & ((result != optx.RESULTS.successful) | poor), more)
             return k + 1, y, cost, result, steps, more
 
         init = (
@@ -624,7 +632,8 @@ class Inverter(eqx.Module):
         With a valid `track`, a few frozen-Jacobian Gauss–Newton iterations from the last
         solution (about three model evaluations); if they do not converge, or without a
         valid track, Levenberg–Marquardt from the best of the last solution and the cold
-        guess. Returns the estimate and the track for the next frame.
+        guess (its first two starts only, so that a stream does not stall; see
+        `Inverter._levenberg_marquardt`). Returns the estimate and the track for the next frame.
         """
         screen, observed, r_zero, noise = self._prepare(frame)
         args = (observed, noise)
@@ -663,7 +672,7 @@ class Inverter(eqx.Module):
             def levenberg_marquardt(_):
                 better = jnp.sum(r_fresh**2) < start_cost
                 y, r, jacobian, steps, result = self._levenberg_marquardt(
-                    jnp.where(better & jnp.all(jnp.isfinite(y_fresh)), y_fresh, start), args
+                    jnp.where(better & jnp.all(jnp.isfinite(y_fresh)), y_fresh, start), args, more_starts=False
                 )
                 return y, r, jacobian, steps, result, jnp.zeros_like(y)
 
