@@ -82,7 +82,9 @@ def _cmd_design(args: argparse.Namespace) -> int:
     if args.optimise:
         from ._observability import optimise_design
 
-        optimum, report = optimise_design(device, min_pitch=args.min_pitch, steps=args.steps, progress=not args.json)
+        optimum, report = optimise_design(
+            device, min_pitch=args.min_pitch, min_fringes=args.min_fringes, steps=args.steps, progress=not args.json
+        )
         table["optimisation"] = report
         device = optimum
     if args.json:
@@ -279,6 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--steps", type=int, default=300, help="optimiser steps")
     p.add_argument("--min-pitch", type=float, default=0.15, help="smallest pitch the laser can cut, mm")
+    p.add_argument("--min-fringes", type=float, default=6.0, help="fewest moire fringes across the frame")
     p.set_defaults(run=_cmd_design)
 
     p = sub.add_parser("simulate", help="render a dataset of a simulated unit under a load protocol")

@@ -667,11 +667,15 @@ def stray_beat_clearance(
 _MIN_BEAT_CLEARANCE = 1.2
 
 
-def _violations(device: Device, min_period, max_phase, mechanics_shape) -> Float[Array, " n"]:
-    """Log-ratios of the penalised limits, <= 0 when met: moiré period, stray beats, then
-    phase range per axis."""
+def _violations(device: Device, min_period, max_period, max_phase, mechanics_shape) -> Float[Array, " n"]:
+    """Log-ratios of the penalised limits, <= 0 when met: moiré period (smallest, largest),
+    stray beats, then phase range per axis."""
     period = 2 * jnp.pi / jnp.linalg.norm(device.moire_wavevectors(), axis=-1)
-    out = [jnp.log(min_period / period), jnp.log(_MIN_BEAT_CLEARANCE / stray_beat_clearance(device))]
+    out = [
+        jnp.log(min_period / period),
+        jnp.log(period / max_period),
+        jnp.log(_MIN_BEAT_CLEARANCE / stray_beat_clearance(device)),
+    ]
     if max_phase is not None:
         out.append(jnp.log(phase_range(device, mechanics_shape=mechanics_shape) / max_phase))
     return jnp.concatenate(out)
@@ -705,6 +709,7 @@ def optimise_design(
     *,
     min_pitch: float = 0.15,
     max_fringe_density: float | None = None,
+    min_fringes: float = 6.0,
     min_carrier_px: float = 2.5,
     max_phase_range: float | None = math.pi,
     duty_range: tuple[float, float] = (0.25, 0.75),
@@ -734,7 +739,7 @@ def optimise_design(
     the elastomer thickness and `max_separation` (default Z/2); duty cycles within
     `duty_range`; |Δα| below `max_angle_deg`. Limits kept by a quadratic penalty on their
     log-ratio: the moiré period of every family at least `1/max_fringe_density` (default
-    8 pixels); no mixed-order grating beat up to the modelled harmonic within 1.2 band radii of
+    8 pixels) and at most the frame's shorter side over `min_fringes`; no mixed-order grating beat up to the modelled harmonic within 1.2 band radii of
     a demodulated band ([`stray_beat_clearance`][]: a beat there biases the fringe phase
     and no band model includes it); with each wrench axis alone over the paper's range,
     the fringe phase change nowhere above `max_phase_range` (rad; `None` drops it). The returned design is
@@ -749,6 +754,11 @@ def optimise_design(
 
     **Arguments:** the limits above, and
 
+    - `min_fringes`: fringes across the frame. Without this limit the search from Mid
+      ended at p1' = p2 within 0.3% (a 226 mm period, no fringes in a 32 mm frame): the
+      bound still counts the carriers, but nothing is left for the band inversion, whose
+      bands are centred on the moiré wavevector with a radius of 0.45 |K| and so need
+      a few Fourier bins between the fringe band and the brightness band.
     - `steps`, `learning_rate`: Adam iterations and step size (in the unconstrained coordinates).
     - `temperature`: $\tau$ of the smooth maximum.
     - `penalty`: weight of the squared log-violations. From Mid (whose twist range wraps at
@@ -772,6 +782,9 @@ def optimise_design(
     if not 0 < duty_range[0] < duty_range[1] < 1:
         raise ValueError(f"duty_range must satisfy 0 < low < high < 1, got {duty_range}")
     max_density = px / 8 if max_fringe_density is None else float(max_fringe_density)
+    if not min_fringes > 0:
+        raise ValueError(f"min_fringes must be positive, got {min_fringes}")
+    max_period = min(device.field_of_view) / float(min_fringes)
     bounds = _Bounds(
         pitch_floor=float(min_pitch),
         carrier_mm=min_carrier_px / px,
@@ -788,7 +801,7 @@ def optimise_design(
         design = _design(z, small, bounds)
         log_relative = jnp.log(_relative_crb(design, noise_arrays, mechanics_shape))
         smooth_max = temperature * jax.nn.logsumexp(log_relative / temperature)
-        violation = _violations(design, min_period, max_phase, mechanics_shape)
+        violation = _violations(design, min_period, max_period, max_phase, mechanics_shape)
         return smooth_max + penalty * jnp.sum(jax.nn.relu(violation) ** 2), (smooth_max, jnp.max(violation))
 
     optimiser = optax.adam(learning_rate)
@@ -821,7 +834,7 @@ def optimise_design(
 
     limits = eqx.filter_jit(
         lambda d: (
-            _violations(d, min_period, max_phase, mechanics_shape),
+            _violations(d, min_period, max_period, max_phase, mechanics_shape),
             phase_range(d, mechanics_shape=mechanics_shape),
         )
     )
@@ -840,6 +853,7 @@ def optimise_design(
             "min_pitch_mm": float(min_pitch),
             "min_carrier_px": float(min_carrier_px),
             "max_fringe_density_per_mm": max_density,
+            "max_period_mm": max_period,
             "max_phase_range_rad": None if max_phase_range is None else float(max_phase_range),
             "separation_mm": [thickness, hi],
             "duty_range": [float(duty_range[0]), float(duty_range[1])],

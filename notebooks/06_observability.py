@@ -59,8 +59,12 @@ SEARCH_START = mj.preset("mid", height=128, width=128) if SMOKE else mj.preset("
 # the search's final bounds reuse the map's compiled Fisher information.
 MAP_MECHANICS = (16, 16) if SMOKE else (64, 64)
 # Smoke mode also drops the phase-range limit, whose derivative makes the search's one-off
-# compilation much longer.
-SEARCH = dict(steps=3, field_mm=8.0, mechanics_shape=MAP_MECHANICS, max_phase_range=None) if SMOKE else dict(steps=300)
+# compilation much longer, and asks for 1.5 fringes across its 8 mm frame instead of 6.
+SEARCH = (
+    dict(steps=3, field_mm=8.0, mechanics_shape=MAP_MECHANICS, max_phase_range=None, min_fringes=1.5)
+    if SMOKE
+    else dict(steps=300)
+)
 figures = Path(tempfile.mkdtemp(prefix="moirejax-06-"))  # PNGs written by the package's plotting
 
 noise = mj.HighFidelity()  # the camera of the high-fidelity renderer: 4000 e- full well, 4 e- read, 8 bit

@@ -13,6 +13,7 @@ from moirejax._design import format_design_table
 from moirejax._geometry import moire_orientation
 from moirejax._observability import (
     _sensitivity_arrays,
+    _violations,
     cramer_rao,
     fisher_information,
     force_sensitivity,
@@ -171,6 +172,7 @@ def test_optimise_design_reduces_objective_within_limits():
         max_phase_range=None,
         duty_range=duty,
         max_angle_deg=5.0,
+        min_fringes=1.5,  # an 8 mm frame: Mid's 4.2 mm period fits under 5.3 mm
         steps=4,
         learning_rate=0.05,
         field_mm=8.0,
@@ -189,11 +191,22 @@ def test_optimise_design_reduces_objective_within_limits():
     assert duty[0] <= float(optimum.duty1) <= duty[1] and duty[0] <= float(optimum.duty2) <= duty[1]
     assert abs(float(optimum.alpha1 - optimum.alpha2)) <= math.radians(5.0)
     period = 2 * np.pi / np.linalg.norm(np.asarray(optimum.moire_wavevectors()), axis=-1)
-    assert np.all(period >= 8 / px * 0.99)
+    assert np.all(period >= 8 / px * 0.99) and np.all(period <= 8.0 / 1.5 * 1.01)
+    assert report["limits"]["max_period_mm"] == pytest.approx(8.0 / 1.5)
     assert json.loads(json.dumps(report)) == report
     # `moirejax design --optimise` prints the start and the optimum side by side.
     text = format_design_table({**mj.design_table(device), "optimisation": report})
     assert f"{report['optimum']['p1_mm']:12.4g}" in text and "optimum / start" in text
+
+
+def test_a_design_without_fringes_breaks_the_period_limit():
+    # p1' = p2: the moiré period is infinite and the band inversion has nothing to read.
+    mid = mj.preset("mid")
+    flat = dataclasses.replace(mid, p1=mid.p2 * (mid.Z + mid.a) / mid.Z * 1.001)
+    max_period = 32.0 / 6
+    # Entries: smallest period per family, then largest period per family, ...
+    violation = lambda d: float(np.max(np.asarray(_violations(d, 0.5, max_period, None, (32, 32)))[2:4]))
+    assert violation(flat) > 3 and violation(mid) < 0
 
 
 def test_phase_range_of_mid_twist_wraps():
