@@ -281,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--steps", type=int, default=300, help="optimiser steps")
     p.add_argument("--min-pitch", type=float, default=0.15, help="smallest pitch the laser can cut, mm")
-    p.add_argument("--min-fringes", type=float, default=6.0, help="fewest moire fringes across the frame")
+    p.add_argument("--min-fringes", type=float, default=4.0, help="fewest moire fringes across the frame")
     p.set_defaults(run=_cmd_design)
 
     p = sub.add_parser("simulate", help="render a dataset of a simulated unit under a load protocol")

@@ -59,7 +59,7 @@ SEARCH_START = mj.preset("mid", height=128, width=128) if SMOKE else mj.preset("
 # the search's final bounds reuse the map's compiled Fisher information.
 MAP_MECHANICS = (16, 16) if SMOKE else (64, 64)
 # Smoke mode also drops the phase-range limit, whose derivative makes the search's one-off
-# compilation much longer, and asks for 1.5 fringes across its 8 mm frame instead of 6.
+# compilation much longer, and asks for 1.5 fringes across its 8 mm frame instead of 4.
 SEARCH = (
     dict(steps=3, field_mm=8.0, mechanics_shape=MAP_MECHANICS, max_phase_range=None, min_fringes=1.5)
     if SMOKE

@@ -203,10 +203,11 @@ def test_a_design_without_fringes_breaks_the_period_limit():
     # p1' = p2: the moiré period is infinite and the band inversion has nothing to read.
     mid = mj.preset("mid")
     flat = dataclasses.replace(mid, p1=mid.p2 * (mid.Z + mid.a) / mid.Z * 1.001)
-    max_period = 32.0 / 6
+    max_period = 32.0 / 4
     # Entries: smallest period per family, then largest period per family, ...
     violation = lambda d: float(np.max(np.asarray(_violations(d, 0.5, max_period, None, (32, 32)))[2:4]))
     assert violation(flat) > 3 and violation(mid) < 0
+    assert violation(mj.preset("sparse")) < 0  # the paper's coarsest fringes: 6 mm
 
 
 def test_phase_range_of_mid_twist_wraps():
