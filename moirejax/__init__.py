@@ -71,6 +71,7 @@ from ._inversion import (
 )
 from ._metrics import wrench_metrics as wrench_metrics
 from ._observability import (
+    band_weight as band_weight,
     cramer_rao as cramer_rao,
     fisher_information as fisher_information,
     force_sensitivity as force_sensitivity,

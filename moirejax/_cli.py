@@ -83,7 +83,13 @@ def _cmd_design(args: argparse.Namespace) -> int:
         from ._observability import optimise_design
 
         optimum, report = optimise_design(
-            device, min_pitch=args.min_pitch, min_fringes=args.min_fringes, steps=args.steps, progress=not args.json
+            device,
+            min_pitch=args.min_pitch,
+            min_fringes=args.min_fringes,
+            max_phase_range=args.max_phase_range if args.max_phase_range > 0 else None,
+            steps=args.steps,
+            estimator=args.estimator,
+            progress=not args.json,
         )
         table["optimisation"] = report
         device = optimum
@@ -100,7 +106,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
     if args.observability_plot:
         from ._observability import plot_observability
 
-        plot_observability(args.observability_plot, device)
+        plot_observability(args.observability_plot, device, estimator=args.estimator)
         print(f"wrote observability maps {args.observability_plot}", file=sys.stderr)
     return 0
 
@@ -282,6 +288,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=300, help="optimiser steps")
     p.add_argument("--min-pitch", type=float, default=0.15, help="smallest pitch the laser can cut, mm")
     p.add_argument("--min-fringes", type=float, default=4.0, help="fewest moire fringes across the frame")
+    p.add_argument(
+        "--max-phase-range",
+        type=float,
+        default=0.0,
+        help="largest fringe phase change of any axis over its range, rad (0: no limit)",
+    )
+    p.add_argument(
+        "--estimator",
+        choices=("bands", "pixels"),
+        default="bands",
+        help="whose bound --optimise and --observability-plot use: the band inversion of `invert`, "
+        "or an efficient whole-frame fit",
+    )
     p.set_defaults(run=_cmd_design)
 
     p = sub.add_parser("simulate", help="render a dataset of a simulated unit under a load protocol")

@@ -155,7 +155,8 @@ def _format_optimisation(report: dict[str, Any]) -> list[str]:
     ]
     lines += [f"    {label:32s} {start[key]:12.4g} {best[key]:12.4g}" for label, key in rows]
     for axis in start["rel_crb"]:
-        lines.append(f"    {'CRB/range ' + axis:32s} {start['rel_crb'][axis]:12.3e} {best['rel_crb'][axis]:12.3e}")
+        label = f"CRB/range {axis} ({report['estimator']})"
+        lines.append(f"    {label:32s} {start['rel_crb'][axis]:12.3e} {best['rel_crb'][axis]:12.3e}")
     lines.append(f"    {'worst axis':32s} {start['worst_axis']:>12s} {best['worst_axis']:>12s}")
     lines.append(
         f"    {'twist phase range (rad)':32s} {start['phase_range_rad']['tz']:12.3g} {best['phase_range_rad']['tz']:12.3g}"
@@ -165,7 +166,12 @@ def _format_optimisation(report: dict[str, Any]) -> list[str]:
         f"    worst-axis bound, optimum / start: {best['worst_rel_crb'] / start['worst_rel_crb']:.3f}"
         + ("" if report["feasible"] else " (no iterate met the limits: the last one is shown)")
     )
-    lines.append("    " + report["estimator"])
+    other = "pixels" if report["estimator"] == "bands" else "bands"
+    lines.append(
+        f"    worst-axis bound of the {other} estimator, optimum / start: "
+        f"{best['worst_rel_crb_' + other] / start['worst_rel_crb_' + other]:.3f}"
+    )
+    lines.append("    " + report["estimator_note"])
     return lines
 
 

@@ -43,7 +43,7 @@ from ._band_model import complex_ratio, predicted_bands
 from ._contact import Contact, NMM_PER_NM
 from ._device import Device
 from ._observability import stray_beat_clearance
-from ._observables import Demodulator, FringeFields
+from ._observables import BAND_FRACTION, Demodulator, FringeFields
 from ._reference import match_reference_geometry
 
 
@@ -202,7 +202,7 @@ class Inverter(eqx.Module):
         *,
         crop_shape: tuple[int, int] = (32, 32),
         model_shape: tuple[int, int] | None = None,
-        band_fraction: float = 0.45,
+        band_fraction: float = BAND_FRACTION,
         max_steps: int = 40,
         rtol: float = 1e-5,
         atol: float = 1e-5,

@@ -18,6 +18,14 @@ Three views of one question, from the cheapest to the most honest:
   deviation no unbiased single-frame estimator can beat, with the contact position and
   radius estimated alongside (the marginal bound) or known (the conditional bound).
 
+Two estimators, two bounds (`estimator=`). `"pixels"` is the bound of an estimator that
+reads every pixel ([`refine_in_pixels`][]), the grating carriers included. `"bands"` is
+the bound of one that reads only the Fourier bins of the moiré bands and the brightness
+band, as the band inversion ([`Inverter`][], `moirejax invert`) does: the information
+of each bin of the frame's spectrum, weighted by the demodulator's band windows. A
+design chosen by the first can put its information in the carriers, where the band
+inversion does not look; the design search therefore uses the second by default.
+
 Wrenches are `[fx, fy, fz, tx, ty, tz]` in N and N·m; the paper's calibrated ranges
 (`moirejax._simulate.PAPER_RANGES`) scale the axes wherever they are compared.
 """
@@ -25,7 +33,7 @@ Wrenches are `[fx, fy, fz, tx, ty, tz]` in N and N·m; the paper's calibrated ra
 import dataclasses
 import math
 import time
-from typing import Any
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -37,6 +45,7 @@ from tqdm.auto import tqdm
 
 from ._contact import Contact, surface_grid, SurfaceGrid, WRENCH_AXES
 from ._device import Device, PRESET_PITCHES
+from ._observables import BAND_FRACTION, BAND_ROLLOFF, raised_cosine_window
 from ._render import deformation, HighFidelity, render_frame
 from ._simulate import PAPER_RANGES
 
@@ -262,8 +271,49 @@ def _parameter_scale(dtype) -> Float[Array, "9"]:
     return jnp.concatenate([axis_ranges(dtype), jnp.ones(3, dtype)])
 
 
+Estimator = Literal["pixels", "bands"]
+ESTIMATORS = ("pixels", "bands")
+
+
+def _check_estimator(estimator: str) -> None:
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+
+
+def band_weight(device: Device, band_fraction: float = BAND_FRACTION) -> Float[Array, "h w"]:
+    r"""How much of each Fourier bin of a frame the band inversion reads, on the `fft2` grid.
+
+    The [`Demodulator`][]'s windows: a raised-cosine disc of radius `band_fraction`
+    $|\mathbf K_f|$ around $\pm\mathbf K_f$ for every fringe family (a real frame holds each
+    band with its conjugate) and one of radius `band_fraction` $\min_f |\mathbf K_f|$ around
+    DC for the brightness. The windows follow the design's moiré wavevectors, so the weight is
+    differentiable in the pitches and angles (the demodulator's own windows sit on whole bins).
+    """
+    h, w = device.height, device.width
+    dtype = device.p1.dtype
+    kx = 2 * jnp.pi * jnp.fft.fftfreq(w).astype(dtype) * device.px_per_mm
+    # Rows run towards -y (docs/CONVENTIONS.md).
+    ky = -2 * jnp.pi * jnp.fft.fftfreq(h).astype(dtype) * device.px_per_mm
+    KX, KY = kx[None, :], ky[:, None]
+    K = device.moire_wavevectors()
+    K_norm = jnp.linalg.norm(K, axis=-1)
+    weight = raised_cosine_window(jnp.hypot(KX, KY), band_fraction * jnp.min(K_norm), BAND_ROLLOFF)
+    for f in range(K.shape[0]):
+        for sign in (1.0, -1.0):
+            distance = jnp.hypot(KX - sign * K[f, 0], KY - sign * K[f, 1])
+            weight = jnp.maximum(weight, raised_cosine_window(distance, band_fraction * K_norm[f], BAND_ROLLOFF))
+    return weight
+
+
 def _scaled_information(
-    device: Device, wrench, contact: Contact, noise: HighFidelity, exposure, mechanics_shape, n_parameters: int
+    device: Device,
+    wrench,
+    contact: Contact,
+    noise: HighFidelity,
+    exposure,
+    mechanics_shape,
+    n_parameters: int,
+    estimator: Estimator = "pixels",
 ) -> Float[Array, "p p"]:
     """Fisher information of the first `n_parameters` of `[wrench, x0, y0, radius]`, in scaled units."""
     parameters = jnp.concatenate([wrench, jnp.stack([contact.x0, contact.y0, contact.radius]).astype(wrench.dtype)])
@@ -274,11 +324,24 @@ def _scaled_information(
 
     frame, jvp = jax.linearize(frame_of, parameters)
     tangents = jnp.diag(_parameter_scale(parameters.dtype))[:n_parameters]
-    jacobian = jax.vmap(jvp)(tangents).reshape(n_parameters, -1)
+    jacobian = jax.vmap(jvp)(tangents)
     # A saturated (or black) pixel is clipped by the camera and tells nothing about the load.
-    unclipped = ((frame > 0) & (frame < 1)).reshape(-1)
-    weight = jnp.where(unclipped, 1 / pixel_noise_variance(frame, noise).reshape(-1), 0.0)
-    return (jacobian * weight[None, :]) @ jacobian.T
+    unclipped = (frame > 0) & (frame < 1)
+    variance = pixel_noise_variance(frame, noise)
+    if estimator == "pixels":
+        weight = jnp.where(unclipped, 1 / variance, 0.0).reshape(-1)
+        flat = jacobian.reshape(n_parameters, -1)
+        return (flat * weight[None, :]) @ flat.T
+    # Bands: the Fourier coefficients of white noise are independent with equal variance
+    # (Parseval: N times the pixel variance), so each bin's information is |dF/dtheta|^2 over
+    # that, counted as far as the band windows pass it. The camera's noise is not quite white
+    # (shot noise follows the brightness); its mean over the frame stands in for it.
+    count = jnp.maximum(jnp.sum(unclipped.astype(frame.dtype)), 1.0)
+    mean_variance = jnp.sum(jnp.where(unclipped, variance, 0.0)) / count
+    spectra = jnp.fft.fft2(jnp.where(unclipped[None], jacobian, 0.0))
+    weight = band_weight(device).astype(frame.dtype)
+    cross = sum(jnp.einsum("ihw,jhw->ij", part * weight[None], part) for part in (spectra.real, spectra.imag))
+    return cross / (frame.size * mean_variance)
 
 
 _scaled_information_jit = eqx.filter_jit(_scaled_information)
@@ -303,6 +366,7 @@ def fisher_information(
     exposure: ArrayLike = 1.0,
     mechanics_shape: tuple[int, int] = (64, 64),
     contact_latents: bool = True,
+    estimator: Estimator = "pixels",
 ) -> Float[Array, "p p"]:
     r"""Fisher information about the wrench carried by one `model`-fidelity frame.
 
@@ -318,6 +382,9 @@ def fisher_information(
       `bit_depth`); `None` for its defaults.
     - `contact_latents`: also estimate the contact `x0`, `y0` (mm) and `radius` (mm)
       (p = 9); otherwise the contact is taken as known (p = 6).
+    - `estimator`: `"pixels"`, the information in every pixel; `"bands"`, only what the
+      band inversion reads: each bin of the Jacobian's spectrum weighted by
+      [`band_weight`][], under white noise of the frame's mean pixel variance.
 
     **Returns:** $F$ for $\theta = $ `[fx, fy, fz, tx, ty, tz]` (N, N·m), followed by
     `[x0, y0, radius]` (mm) when `contact_latents` (`PARAMETER_NAMES` order); units are
@@ -326,9 +393,10 @@ def fisher_information(
     wrench = jnp.asarray(wrench)
     if wrench.shape != (6,):
         raise ValueError(f"wrench must have shape (6,), got {wrench.shape}")
+    _check_estimator(estimator)
     n = 9 if contact_latents else 6
     scaled = _scaled_information_jit(
-        device, wrench, contact, _as_arrays(noise, wrench.dtype), exposure, mechanics_shape, n
+        device, wrench, contact, _as_arrays(noise, wrench.dtype), exposure, mechanics_shape, n, estimator
     )
     scale = _parameter_scale(wrench.dtype)[:n]
     return scaled / (scale[:, None] * scale[None, :])
@@ -394,10 +462,12 @@ def cramer_rao(
     *,
     exposure: ArrayLike = 1.0,
     mechanics_shape: tuple[int, int] = (64, 64),
+    estimator: Estimator = "pixels",
 ) -> dict[str, Any]:
     """Cramér–Rao lower bounds on the wrench from one frame, with the contact estimated alongside.
 
-    **Arguments:** as for [`fisher_information`][].
+    **Arguments:** as for [`fisher_information`][] (`estimator="bands"`: the bound of an
+    estimator that reads the moiré and brightness bands only, as `moirejax invert` does).
 
     **Returns:** a dict of plain Python values:
 
@@ -418,8 +488,9 @@ def cramer_rao(
     wrench = jnp.asarray(wrench)
     if wrench.shape != (6,):
         raise ValueError(f"wrench must have shape (6,), got {wrench.shape}")
+    _check_estimator(estimator)
     scaled = _scaled_information_jit(
-        device, wrench, contact, _as_arrays(noise, wrench.dtype), exposure, mechanics_shape, 9
+        device, wrench, contact, _as_arrays(noise, wrench.dtype), exposure, mechanics_shape, 9, estimator
     )
     return _bounds(np.asarray(scaled))
 
@@ -431,29 +502,33 @@ def observability_table(
 
     The load is a centred press of radius 3.5 mm under Fz = 0.6 N; bounds are marginal
     over the contact latents and use the frame at the device's own size and resolution.
-    Keys: `crb_<axis>` (N or N·m), `rel_crb_<axis>` (bound over the paper's range),
-    `worst_axis`, `worst_rel_crb`, `weakest_direction_axis`, `weakest_direction` (unit
-    vector in range units, axis order fx..tz), `condition_number`, and a `conditions` line.
+    Keys, for the whole-frame estimator: `crb_<axis>` (N or N·m), `rel_crb_<axis>` (bound
+    over the paper's range), `worst_axis`, `worst_rel_crb`, `weakest_direction_axis`,
+    `weakest_direction` (unit vector in range units, axis order fx..tz),
+    `condition_number`; the same for the band inversion with a `band_` prefix; and a
+    `conditions` line.
     """
     wrench, contact = nominal_load(device.p1.dtype)
-    bounds = cramer_rao(device, wrench, contact, noise, mechanics_shape=mechanics_shape)
     noise = HighFidelity() if noise is None else noise
     table: dict[str, Any] = {}
-    for name in WRENCH_AXES:
-        unit = "N" if name.startswith("f") else "Nm"
-        table[f"crb_{name}_{unit}"] = bounds["std"][name]
-    for name in WRENCH_AXES:
-        table[f"rel_crb_{name}"] = bounds["relative"][name]
-    table["worst_axis"] = bounds["worst_axis"]
-    table["worst_rel_crb"] = bounds["worst_relative"]
-    table["weakest_direction_axis"] = bounds["weakest_axis"]
-    table["weakest_direction"] = [round(bounds["weakest_direction"][name], 4) for name in WRENCH_AXES]
-    table["condition_number"] = bounds["condition_number"]
+    for estimator, prefix in (("pixels", ""), ("bands", "band_")):
+        bounds = cramer_rao(device, wrench, contact, noise, mechanics_shape=mechanics_shape, estimator=estimator)
+        for name in WRENCH_AXES:
+            unit = "N" if name.startswith("f") else "Nm"
+            table[f"{prefix}crb_{name}_{unit}"] = bounds["std"][name]
+        for name in WRENCH_AXES:
+            table[f"{prefix}rel_crb_{name}"] = bounds["relative"][name]
+        table[f"{prefix}worst_axis"] = bounds["worst_axis"]
+        table[f"{prefix}worst_rel_crb"] = bounds["worst_relative"]
+        table[f"{prefix}weakest_direction_axis"] = bounds["weakest_axis"]
+        table[f"{prefix}weakest_direction"] = [round(bounds["weakest_direction"][name], 4) for name in WRENCH_AXES]
+        table[f"{prefix}condition_number"] = bounds["condition_number"]
     table["conditions"] = (
         f"one {device.height}x{device.width} model frame at {float(device.px_per_mm):.4g} px/mm, "
         f"full well {float(noise.full_well):.0f} e-, read noise {float(noise.read_noise):.3g} e-, "
         f"{noise.bit_depth} bit; centred contact r = {NOMINAL_RADIUS} mm, Fz = {NOMINAL_WRENCH[2]} N; "
-        "contact position and radius estimated too"
+        "contact position and radius estimated too; band_*: only the moire and brightness bands read, "
+        "as `moirejax invert` does"
     )
     return table
 
@@ -473,9 +548,9 @@ def reduced_device(device: Device, field_mm: float = _REDUCED_FIELD_MM) -> Devic
     return dataclasses.replace(device, height=size, width=size)
 
 
-def _relative_bounds(device: Device, noise: HighFidelity, mechanics_shape) -> np.ndarray:
+def _relative_bounds(device: Device, noise: HighFidelity, mechanics_shape, estimator: Estimator) -> np.ndarray:
     wrench, contact = nominal_load(device.p1.dtype)
-    scaled = _scaled_information_jit(device, wrench, contact, noise, 1.0, mechanics_shape, 9)
+    scaled = _scaled_information_jit(device, wrench, contact, noise, 1.0, mechanics_shape, 9, estimator)
     relative = _bounds(np.asarray(scaled))["relative"]
     return np.array([relative[name] for name in WRENCH_AXES])
 
@@ -489,6 +564,7 @@ def plot_observability(
     angles_deg: tuple[float, float, int] = (-5.0, 5.0, 21),
     field_mm: float = _REDUCED_FIELD_MM,
     mechanics_shape: tuple[int, int] = (64, 64),
+    estimator: Estimator = "bands",
 ) -> None:
     """Per-axis relative Cramér–Rao bound over a p1 x p2 grid and over Δα, as a PNG.
 
@@ -504,9 +580,12 @@ def plot_observability(
     - `pitches`: `(first, last, count)` of the p1 and p2 axes (mm).
     - `angles_deg`: `(first, last, count)` of Δα = α1 − α2 (degrees) at the device's pitches.
     - `field_mm`, `mechanics_shape`: reduced frame and mechanics grid.
+    - `estimator`: whose bound to map (see [`fisher_information`][]); by default the band
+      inversion's, which `moirejax invert` runs.
     """
     from ._plotting import pyplot, save_figure
 
+    _check_estimator(estimator)
     small = reduced_device(device, field_mm)
     noise = _as_arrays(noise, small.p1.dtype)
     dtype = small.p1.dtype
@@ -515,7 +594,7 @@ def plot_observability(
     for i, p2 in enumerate(grid):
         for j, p1 in enumerate(grid):
             design = dataclasses.replace(small, p1=jnp.asarray(p1, dtype), p2=jnp.asarray(p2, dtype))
-            maps[i, j] = _relative_bounds(design, noise, mechanics_shape)
+            maps[i, j] = _relative_bounds(design, noise, mechanics_shape, estimator)
     angles = np.linspace(*angles_deg)
     curves = np.stack(
         [
@@ -523,6 +602,7 @@ def plot_observability(
                 dataclasses.replace(small, alpha1=small.alpha2 + jnp.asarray(math.radians(a), dtype)),
                 noise,
                 mechanics_shape,
+                estimator,
             )
             for a in angles
         ]
@@ -561,7 +641,8 @@ def plot_observability(
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.suptitle(
-        f"Single-frame Cramer-Rao bounds (marginal over contact x0, y0, r), {small.layout} gratings, "
+        f"Single-frame Cramer-Rao bounds of the {'band' if estimator == 'bands' else 'whole-frame'} estimator "
+        f"(marginal over contact x0, y0, r), {small.layout} gratings, "
         f"a={a:.3g} mm, Z={Z:.3g} mm; nominal load Fz={NOMINAL_WRENCH[2]} N, r={NOMINAL_RADIUS} mm, centred.\n"
         f"Reduced frame: central {small.height}x{small.width} px crop ({small.height / px:.1f} mm) "
         f"of the {device.height}x{device.width} frame at {px:.3g} px/mm. "
@@ -622,15 +703,15 @@ def _coordinates(device: Device, bounds: _Bounds) -> np.ndarray:
     )
 
 
-def _relative_crb(device: Device, noise: HighFidelity, mechanics_shape) -> Float[Array, "6"]:
+def _relative_crb(device: Device, noise: HighFidelity, mechanics_shape, estimator: Estimator) -> Float[Array, "6"]:
     """Marginal bound of each wrench axis over its range (the information is in range units)."""
     wrench, contact = nominal_load(device.p1.dtype)
-    information = _scaled_information(device, wrench, contact, noise, 1.0, mechanics_shape, 9)
+    information = _scaled_information(device, wrench, contact, noise, 1.0, mechanics_shape, 9, estimator)
     return jnp.sqrt(jnp.diag(jnp.linalg.inv(information))[:6])
 
 
 def stray_beat_clearance(
-    device: Device, band_fraction: float = 0.45, max_order: int | None = None
+    device: Device, band_fraction: float = BAND_FRACTION, max_order: int | None = None
 ) -> Float[Array, " sets"]:
     r"""How far the gratings' mixed-order beats stay from the demodulated bands, per family.
 
@@ -685,7 +766,10 @@ def _violations(device: Device, min_period, max_period, max_phase, mechanics_sha
 _LIMIT_TOLERANCE = 0.01
 
 
-def _summary(device: Device, relative: np.ndarray, violations: np.ndarray, phases: np.ndarray) -> dict[str, Any]:
+def _summary(
+    device: Device, relative: dict[str, np.ndarray], estimator: str, violations: np.ndarray, phases: np.ndarray
+) -> dict[str, Any]:
+    other = "pixels" if estimator == "bands" else "bands"
     return {
         "p1_mm": float(device.p1),
         "p2_mm": float(device.p2),
@@ -695,9 +779,12 @@ def _summary(device: Device, relative: np.ndarray, violations: np.ndarray, phase
         "duty2": float(device.duty2),
         "period_mm": float(np.min(2 * np.pi / np.linalg.norm(np.asarray(device.moire_wavevectors()), axis=-1))),
         "stray_beat_clearance": float(np.min(np.asarray(stray_beat_clearance(device)))),
-        "rel_crb": {name: float(v) for name, v in zip(WRENCH_AXES, relative)},
-        "worst_axis": _worst_axes(relative),
-        "worst_rel_crb": float(np.max(relative)),
+        "rel_crb": {name: float(v) for name, v in zip(WRENCH_AXES, relative[estimator])},
+        "worst_axis": _worst_axes(relative[estimator]),
+        "worst_rel_crb": float(np.max(relative[estimator])),
+        # The other estimator's bound, for comparison (the search does not see it).
+        f"rel_crb_{other}": {name: float(v) for name, v in zip(WRENCH_AXES, relative[other])},
+        f"worst_rel_crb_{other}": float(np.max(relative[other])),
         "phase_range_rad": {name: float(v) for name, v in zip(WRENCH_AXES, phases)},
         "max_violation": float(np.max(violations)),
         "within_limits": bool(np.max(violations) <= _LIMIT_TOLERANCE),
@@ -711,10 +798,11 @@ def optimise_design(
     max_fringe_density: float | None = None,
     min_fringes: float = 4.0,
     min_carrier_px: float = 2.5,
-    max_phase_range: float | None = math.pi,
+    max_phase_range: float | None = None,
     duty_range: tuple[float, float] = (0.25, 0.75),
     max_angle_deg: float = 10.0,
     max_separation: float | None = None,
+    no_axis_worse: bool = True,
     steps: int = 300,
     learning_rate: float = 0.03,
     temperature: float = 0.05,
@@ -722,16 +810,17 @@ def optimise_design(
     noise: HighFidelity | None = None,
     field_mm: float = _REDUCED_FIELD_MM,
     mechanics_shape: tuple[int, int] = (64, 64),
+    estimator: Estimator = "bands",
     progress: bool = True,
 ) -> tuple[Device, dict[str, Any]]:
     r"""Gradient descent (Adam) on the design for the best worst-axis single-frame Cramér–Rao bound.
 
     The objective is a smooth maximum over the six axes,
     $\tau \log \sum_i \exp(\log r_i / \tau)$, of $\log r_i$, the marginal bound of axis $i$
-    over its range in the paper (at the nominal load, contact estimated too), computed
-    through the model on the central crop of about `field_mm` of the frame
-    ([`reduced_device`][]). Design variables: p1, p2, Δα (α1 moves, α2 stays), a and
-    both duty cycles; everything else is `device`'s.
+    over its range in the paper (at the nominal load, contact estimated too) for the
+    `estimator` that will read the frames, computed through the model on the central crop
+    of about `field_mm` of the frame ([`reduced_device`][]). Design variables: p1, p2, Δα
+    (α1 moves, α2 stays), a and both duty cycles; everything else is `device`'s.
 
     Limits kept exactly by reparameterisation: both pitches at least `min_pitch` (what the
     laser can cut) and at least `min_carrier_px` pixels in the image (p2 and p1's
@@ -742,15 +831,24 @@ def optimise_design(
     8 pixels) and at most the frame's shorter side over `min_fringes`; no mixed-order grating beat up to the modelled harmonic within 1.2 band radii of
     a demodulated band ([`stray_beat_clearance`][]: a beat there biases the fringe phase
     and no band model includes it); with each wrench axis alone over the paper's range,
-    the fringe phase change nowhere above `max_phase_range` (rad; `None` drops it). The returned design is
-    the best iterate that meets the penalised limits to 1% (the last one if none does).
+    the fringe phase change nowhere above `max_phase_range` (rad; `None`, the default,
+    drops it: see below); with
+    `no_axis_worse`, no axis's bound above the start's, so that the optimum gains on the
+    worst axis without giving up another. The returned design is the best iterate that
+    meets the penalised limits to 1% (the last one if none does).
 
-    The bound is that of an efficient estimator of the whole frame ([`refine_in_pixels`][]),
-    which counts the information in the grating carriers too. The band inversion
-    ([`Inverter`][]) reads only the moiré bands, and a design can gain on the bound where
-    the bands lose: from Mid, the default search's optimum scatters 0.90x as much as Mid
-    under the pixel fit but 5x as much under the band inversion
-    (`benchmarks/design_check.py`). Check a design with the estimator you will run.
+    Optimise for the estimator you will run. The default, `"bands"`, is the bound of the
+    band inversion ([`Inverter`][], `moirejax invert`), which reads only the moiré and
+    brightness bands; on Mid its scatter is within 20% of that bound
+    (`benchmarks/crb_vs_scatter.py`). `"pixels"` is the bound of an efficient estimator of
+    the whole frame ([`refine_in_pixels`][]), which counts the information in the grating
+    carriers too: optimised for it, the search from Mid found coarse pitches whose gain
+    lay in the carriers, and the band inversion scattered 5x as much as on Mid there.
+    `benchmarks/design_check.py` checks an optimum by inverting simulated frames: from Mid,
+    the default search ends at p1 0.327, p2 0.321 mm, Δα −1.9°, a 1.41 mm period, with
+    0.34x Mid's worst-axis band bound; at the same camera noise its band inversion reads
+    40 mixed loads with 0.52-0.95x Mid's RMSE on every axis, at about 2.4x the solve
+    time (a 192 x 192 model grid against 96 x 96, [`model_grid_for`][]).
 
     **Arguments:** the limits above, and
 
@@ -760,21 +858,33 @@ def optimise_design(
       bands are centred on the moiré wavevector with a radius of 0.45 |K| and so need
       a few Fourier bins between the fringe band and the brightness band. The paper's
       designs have 5.3 (Sparse) to 40 (Dense) fringes across a 32 mm frame.
+    - `no_axis_worse`: penalise every axis whose bound rises above the start's (on the
+      reduced frame, to 1%). A smooth maximum trades the other axes for the worst one:
+      from Mid, the band search without it (and with a phase limit of π) gained 29% on
+      shear and gave up 4% on Fz and 9% on Tz.
     - `steps`, `learning_rate`: Adam iterations and step size (in the unconstrained coordinates).
     - `temperature`: $\tau$ of the smooth maximum.
+    - `max_phase_range`: for a solver that must not see a fringe move by more than half a
+      period. The band inversion does not need it: Mid's twist range turns the fringes by
+      6.3 rad near the contact edge and its cold solves still read Tz at R² 0.99998. At π,
+      the search from Mid doubled p1 (halving every phase change per newton) and its
+      optimum, though 0.71x Mid's worst-axis bound, read mixed loads worse than Mid after
+      inversion (model floor 2-4x Mid's).
     - `penalty`: weight of the squared log-violations. From Mid (whose twist range wraps at
-      6.3 rad), 150 steps at a weight of 100 ended 24% over the phase limit with no iterate
+      6.3 rad), 150 steps at a weight of 100 ended 24% over the phase limit of π with no iterate
       inside it; 300 steps at 1000 reach it.
     - `noise`: camera noise ([`HighFidelity`][] defaults for `None`).
     - `field_mm`, `mechanics_shape`: reduced frame and mechanics grid of the optimisation.
+    - `estimator`: `"bands"` or `"pixels"`, whose bound to minimise (see [`fisher_information`][]).
     - `progress`: show a progress bar on stderr.
 
     **Returns:** `(optimum, report)`, `report` a JSON-ready dict with the start and the
-    optimum (design, per-axis relative bounds on the full frame, phase ranges, worst
-    limit violation), the objective history and the limits.
+    optimum (design, per-axis relative bounds on the full frame for both estimators,
+    phase ranges, worst limit violation), the objective history and the limits.
     """
     if steps < 0:
         raise ValueError(f"steps must be non-negative, got {steps}")
+    _check_estimator(estimator)
     px = float(device.px_per_mm)
     thickness, Z = float(device.elastomer.thickness), float(device.Z)
     hi = 0.5 * Z if max_separation is None else float(max_separation)
@@ -800,9 +910,11 @@ def optimise_design(
 
     def loss(z):
         design = _design(z, small, bounds)
-        log_relative = jnp.log(_relative_crb(design, noise_arrays, mechanics_shape))
+        log_relative = jnp.log(_relative_crb(design, noise_arrays, mechanics_shape, estimator))
         smooth_max = temperature * jax.nn.logsumexp(log_relative / temperature)
         violation = _violations(design, min_period, max_period, max_phase, mechanics_shape)
+        if no_axis_worse:
+            violation = jnp.concatenate([violation, log_relative - log_start])
         return smooth_max + penalty * jnp.sum(jax.nn.relu(violation) ** 2), (smooth_max, jnp.max(violation))
 
     optimiser = optax.adam(learning_rate)
@@ -817,6 +929,10 @@ def optimise_design(
 
     start = time.perf_counter()
     z = jnp.asarray(_coordinates(device, bounds), dtype)
+    # The start as the search sees it: a design outside the box limits starts just inside.
+    log_start = jnp.log(
+        eqx.filter_jit(_relative_crb)(_design(z, small, bounds), noise_arrays, mechanics_shape, estimator)
+    )
     state = optimiser.init(z)
     history: list[float] = []
     best: tuple[float, Array] | None = None
@@ -842,12 +958,16 @@ def optimise_design(
 
     def evaluate(design: Device) -> dict[str, Any]:
         wrench, contact = nominal_load(design.p1.dtype)
-        relative = np.array(list(cramer_rao(design, wrench, contact, noise)["relative"].values()))
+        relative = {
+            name: np.array(list(cramer_rao(design, wrench, contact, noise, estimator=name)["relative"].values()))
+            for name in ESTIMATORS
+        }
         violations, phases = limits(reduced_device(design, field_mm))
-        return _summary(design, relative, np.asarray(violations), np.asarray(phases))
+        return _summary(design, relative, estimator, np.asarray(violations), np.asarray(phases))
 
     report = {
-        "objective": f"smooth max (log-sum-exp, temperature {temperature}) of log(CRB/range), marginal over the contact",
+        "objective": f"smooth max (log-sum-exp, temperature {temperature}) of log(CRB/range) of the "
+        f"{estimator!r} estimator, marginal over the contact",
         "reduced_frame": f"central {small.height}x{small.width} px crop at {px:.4g} px/mm during the search; "
         f"bounds below on the full {device.height}x{device.width} frame",
         "limits": {
@@ -859,9 +979,16 @@ def optimise_design(
             "separation_mm": [thickness, hi],
             "duty_range": [float(duty_range[0]), float(duty_range[1])],
             "max_angle_deg": float(max_angle_deg),
+            "no_axis_worse_than_start": no_axis_worse,
         },
-        "estimator": "the bound is that of an efficient whole-frame estimator (refine_in_pixels); the band "
-        "inversion of `invert` can rank designs otherwise: check the design with benchmarks/design_check.py",
+        "estimator": estimator,
+        "estimator_note": (
+            "the bound of the band inversion (`moirejax invert`), which reads the moire and brightness bands only"
+            if estimator == "bands"
+            else "the bound of an efficient whole-frame estimator (refine_in_pixels); the band inversion of "
+            "`invert` can rank designs otherwise"
+        )
+        + "; check a design by inverting simulated frames: benchmarks/design_check.py",
         "start": evaluate(device),
         "optimum": evaluate(optimum),
         "feasible": best is not None,

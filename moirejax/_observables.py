@@ -73,6 +73,12 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Complex, Float
 
 
+# Band radius over |K| and taper of every band's window, unless a Demodulator is told
+# otherwise. Below 0.5 the fringe bands stay clear of the brightness band.
+BAND_FRACTION = 0.45
+BAND_ROLLOFF = 0.3
+
+
 def _raised_cosine(xp, distance, radius, rolloff):
     """Raised-cosine disc profile: 1 inside `radius*(1-rolloff)`, cosine taper to 0 at `radius`."""
     flat = radius * (1 - rolloff)
@@ -393,8 +399,8 @@ class Demodulator(eqx.Module):
         px_per_mm: float,
         wavevectors: Float[ArrayLike, "families 2"],
         crop_shape: tuple[int, int] = (32, 32),
-        band_fraction: float = 0.45,
-        rolloff: float = 0.3,
+        band_fraction: float = BAND_FRACTION,
+        rolloff: float = BAND_ROLLOFF,
         apodize: bool = True,
         centroid_taper: float = 0.25,
     ):
