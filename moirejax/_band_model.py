@@ -14,15 +14,16 @@ This is about a hundred times cheaper than rendering and demodulating a frame, w
 is what makes a per-frame least-squares inversion run at camera rate.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float
 
 from ._contact import Contact
 from ._device import Device
-from ._observables import Demodulator, FringeFields
-from ._optics import background_radiance, binary_harmonics, gaussian_mtf, image_coordinates
-from ._render import deformation, grating_phases
+from ._observables import Demodulator, FringeFields, RealBandPass
+from ._optics import background_radiance, binary_harmonics, gaussian_mtf, image_coordinates, line_transmission
+from ._render import Mechanics, mechanics, reference_grating_phase, upper_grating_phase
 
 
 def beat_coefficients(device: Device) -> tuple[Float[Array, "sets n"], Float[Array, ""]]:
@@ -43,6 +44,66 @@ def beat_coefficients(device: Device) -> tuple[Float[Array, "sets n"], Float[Arr
     psf = gaussian_mtf(n[None] * K[:, None], device.optics.psf_sigma / device.px_per_mm)
     weights = half[None] * (c1 * c2)[None] * defocus * psf
     return weights, c2[0] ** device.n_sets
+
+
+class BandModel(eqx.Module):
+    """[`predicted_bands`][] for one device, demodulator, model grid and reference
+    wavevector, with everything that does not depend on the load precomputed: the elastomer's
+    response, the reference grating's phase, the scene radiance and the band-passes
+    ([`band_model`][]). An inversion evaluates the model a few times per frame on a fixed
+    unit; this is what makes each evaluation cost little more than the load's own work.
+    Call it with `(wrench, contact, exposure)`."""
+
+    device: Device
+    mechanics: Mechanics
+    x: Float[Array, "h w"]
+    y: Float[Array, "h w"]
+    reference_phase: Float[Array, "sets h w"]
+    radiance: Float[Array, "h w"]
+    beat_weights: Float[Array, "sets n"]
+    mean_reference: Float[Array, ""]
+    band_pass: RealBandPass
+    reference_wavevector: Float[Array, "families 2"]
+
+    def __call__(self, wrench: Float[Array, "6"], contact: Contact, exposure: ArrayLike = 1.0) -> FringeFields:
+        device = self.device
+        state = self.mechanics(wrench, contact)
+        beat = upper_grating_phase(device, self.x, self.y, state.displacement) - self.reference_phase
+        # Everything of the frame below the carriers: the product over line sets of their
+        # beats, and the elastomer light seen through the reference grating. The light is a
+        # bump a few mm wide, so it reaches into the fringe bands too.
+        transmission = jnp.prod(jax.vmap(line_transmission)(beat, self.beat_weights), axis=0)
+        gain = device.optics.gain * jnp.asarray(exposure)
+        low = device.optics.offset + gain * (self.radiance * transmission + self.mean_reference * state.light)
+        fringe, brightness = self.band_pass(low)
+        return FringeFields(fringe=fringe, brightness=brightness, reference_wavevector=self.reference_wavevector)
+
+
+def band_model(
+    device: Device,
+    demodulator: Demodulator,
+    model_shape: tuple[int, int] = (64, 64),
+    reference_wavevector: Float[Array, "families 2"] | None = None,
+) -> BandModel:
+    """The [`BandModel`][] of [`predicted_bands`][] (same arguments, less the load)."""
+    if demodulator.num_families != device.n_sets:
+        raise ValueError(f"demodulator has {demodulator.num_families} families, device {device.n_sets} line sets")
+    x, y = image_coordinates(device, model_shape)
+    weights, mean_reference = beat_coefficients(device)
+    return BandModel(
+        device=device,
+        mechanics=mechanics(device, model_shape),
+        x=x,
+        y=y,
+        reference_phase=reference_grating_phase(device, x, y),
+        radiance=background_radiance(device, x, y),
+        beat_weights=weights,
+        mean_reference=mean_reference,
+        # Phases refer to the demodulator's nominal wavevectors; the measured reference
+        # wavevector only sets the normalisation.
+        band_pass=demodulator.real_band_pass(model_shape, reference_wavevector, x.dtype),
+        reference_wavevector=demodulator.wavevectors if reference_wavevector is None else reference_wavevector,
+    )
 
 
 def predicted_bands(
@@ -67,34 +128,9 @@ def predicted_bands(
       demodulator's own if omitted).
 
     **Returns:** predicted fringe fields (families on the first axis) and brightness.
+    Many loads on one unit: build its [`band_model`][] once.
     """
-    if demodulator.num_families != device.n_sets:
-        raise ValueError(f"demodulator has {demodulator.num_families} families, device {device.n_sets} line sets")
-    state = deformation(device, wrench, contact, model_shape)
-    x, y = image_coordinates(device, model_shape)
-    phase1, phase2 = grating_phases(device, x, y, state.displacement)
-    weights, mean_reference = beat_coefficients(device)
-    harmonic = jnp.arange(device.harmonics + 1, dtype=float)
-    beats = jnp.cos(harmonic[None, :, None, None] * (phase1 - phase2)[:, None])
-    # Everything of the frame below the carriers: the product over line sets of their
-    # beats, and the elastomer light seen through the reference grating. The light is a
-    # bump a few mm wide, so it reaches into the fringe bands too.
-    transmission = jnp.prod(jnp.einsum("sn,snhw->shw", weights, beats), axis=0)
-    gain = device.optics.gain * jnp.asarray(exposure)
-    low = device.optics.offset + gain * (
-        background_radiance(device, x, y) * transmission + mean_reference * state.light
-    )
-    # A real field F holds a e^{iK.x} + conj; F e^{-iK.x} puts a at baseband and the
-    # conjugate at -2K, which the band-pass removes. Phases refer to the demodulator's
-    # nominal wavevectors; the measured reference wavevector only sets the normalisation.
-    K = demodulator.wavevectors
-    shift = -(K[:, 0, None, None] * x[None] + K[:, 1, None, None] * y[None])
-    baseband = jax.lax.complex(low[None] * jnp.cos(shift), low[None] * jnp.sin(shift))
-    return FringeFields(
-        fringe=demodulator.filter_baseband(baseband, reference_wavevector),
-        brightness=demodulator.filter_brightness(low),
-        reference_wavevector=K if reference_wavevector is None else reference_wavevector,
-    )
+    return band_model(device, demodulator, model_shape, reference_wavevector)(wrench, contact, exposure)
 
 
 def fringe_phase(fields: FringeFields) -> Float[Array, "families m n"]:

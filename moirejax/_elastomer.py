@@ -39,6 +39,7 @@ layer is a half-space to float64 precision. $q = 0$ takes its exact limit behind
 $C_{xz} = i q_x\, C_{Lw}/(i|q|)$ is smooth through $q = 0$.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float
@@ -235,6 +236,81 @@ def half_space_compliance(
     return _assemble(qx, qy, cos, sin, *_half_space_modal_compliance(q, at_zero, E, nu))
 
 
+class LayerResponse(eqx.Module):
+    """[`layer_compliance`][] on the `rfft2` bins of one grid, ready to apply.
+
+    Everything [`surface_displacement`][] computes that does not depend on the traction: a
+    unit's layer and grid are fixed, so an inversion builds this once
+    ([`layer_response`][]) and pays only two FFTs and a few products per model evaluation.
+    Call it on a `(3, h, w)` traction field for the displacement `(ux, uy, w)` (mm).
+    """
+
+    xx: Complex[Array, "h k"]
+    yy: Complex[Array, "h k"]
+    xy: Complex[Array, "h k"]
+    ww: Complex[Array, "h k"]
+    # i Y q_x and i Y q_y: the normal/tangential coupling is a quarter-period phase shift.
+    coupling_x: Complex[Array, "h k"]
+    coupling_y: Complex[Array, "h k"]
+    shape: tuple[int, int] = eqx.field(static=True)
+
+    def __call__(self, traction: Float[Array, "3 h w"]) -> Float[Array, "3 h w"]:
+        if traction.shape != (3, *self.shape):
+            raise ValueError(f"traction must have shape {(3, *self.shape)}, got {traction.shape}.")
+        tx, ty, p = jnp.fft.rfft2(traction.astype(_real_dtype(self.xx.dtype)))
+        ux = self.xx * tx + self.xy * ty + self.coupling_x * p
+        uy = self.xy * tx + self.yy * ty + self.coupling_y * p
+        w = self.ww * p - self.coupling_x * tx - self.coupling_y * ty
+        return jnp.fft.irfft2(jnp.stack([ux, uy, w]), s=self.shape)
+
+
+def _real_dtype(complex_dtype):
+    return jnp.zeros((), complex_dtype).real.dtype
+
+
+def layer_response(
+    shape: tuple[int, int],
+    spacing: Float[ArrayLike, ""],
+    E: Float[ArrayLike, ""],
+    nu: Float[ArrayLike, ""],
+    thickness: Float[ArrayLike, ""],
+    dtype=None,
+) -> LayerResponse:
+    r"""The [`LayerResponse`][] of a bonded layer on an `h x w` grid of `spacing` (mm).
+
+    The repository's Fourier convention ($k_x$ along columns, $k_y = -2\pi\,\mathrm{fftfreq}$
+    along rows because $y$ points up). On even grids the Nyquist bins keep only the part of
+    $C$ even in the aliased component, so the operator stays mirror-symmetric.
+    Differentiable in `spacing`, `E`, `nu` and `thickness`; `dtype` is the real precision
+    (default: that of the arguments).
+    """
+    n_rows, n_cols = (int(n) for n in shape)
+    dtype = _inexact_dtype(spacing, E, nu, thickness) if dtype is None else dtype
+    spacing, E, nu, thickness = (jnp.asarray(v, dtype) for v in (spacing, E, nu, thickness))
+    kx = 2 * jnp.pi * jnp.fft.rfftfreq(n_cols, dtype=dtype) / spacing
+    ky = -2 * jnp.pi * jnp.fft.fftfreq(n_rows, dtype=dtype) / spacing
+    qx, qy, q, cos, sin, at_zero = _wavevector_polar(kx[None, :], ky[:, None], dtype)
+    C_TT, C_LL, C_ww, Y = _layer_modal_compliance(q, at_zero, E, nu, thickness)
+    # On an even grid the Nyquist frequency stands for +q and -q at once and can only carry
+    # a cosine, so the parts of C odd in that component (C_xy, C_xz, C_yz) cancel there.
+    # Dropping them keeps the operator mirror-symmetric as well as reciprocal.
+    keep_x = ~((n_cols % 2 == 0) & (jnp.arange(kx.shape[0]) == n_cols // 2))[None, :]
+    keep_y = ~((n_rows % 2 == 0) & (jnp.arange(ky.shape[0]) == n_rows // 2))[:, None]
+    complex_dtype = jnp.complex64 if jnp.dtype(dtype) == jnp.float32 else jnp.complex128
+    as_complex = lambda a: a.astype(complex_dtype)
+    Y_x = jnp.where(keep_x, Y * qx, 0)
+    Y_y = jnp.where(keep_y, Y * qy, 0)
+    return LayerResponse(
+        xx=as_complex(C_LL * cos * cos + C_TT * sin * sin),
+        yy=as_complex(C_LL * sin * sin + C_TT * cos * cos),
+        xy=as_complex(jnp.where(keep_x & keep_y, (C_LL - C_TT) * cos * sin, 0)),
+        ww=as_complex(C_ww),
+        coupling_x=jax.lax.complex(jnp.zeros_like(Y_x), Y_x),
+        coupling_y=jax.lax.complex(jnp.zeros_like(Y_y), Y_y),
+        shape=(n_rows, n_cols),
+    )
+
+
 @jax.jit
 def surface_displacement(
     traction: Float[Array, "3 h w"],
@@ -251,7 +327,8 @@ def surface_displacement(
     periodic with the grid's period; pad the traction if the contact must not feel its
     periodic images. Exact for band-limited tractions. On even grids the Nyquist bins keep
     only the part of $C$ even in the aliased component, so the result stays mirror-symmetric.
-    Uses `rfft2`/`irfft2`; differentiable in every argument.
+    Uses `rfft2`/`irfft2`; differentiable in every argument. Many tractions on one layer
+    and grid: build the [`layer_response`][] once.
 
     **Arguments:**
 
@@ -267,32 +344,5 @@ def surface_displacement(
     if traction.ndim != 3 or traction.shape[0] != 3:
         raise ValueError(f"traction must have shape (3, h, w), got {traction.shape}.")
     dtype = _inexact_dtype(traction)
-    traction = jnp.asarray(traction, dtype)
-    n_rows, n_cols = traction.shape[1:]
-    spacing, E, nu, thickness = (jnp.asarray(v, dtype) for v in (spacing, E, nu, thickness))
-    kx = 2 * jnp.pi * jnp.fft.rfftfreq(n_cols, dtype=dtype) / spacing
-    ky = -2 * jnp.pi * jnp.fft.fftfreq(n_rows, dtype=dtype) / spacing
-    qx, qy, q, cos, sin, at_zero = _wavevector_polar(kx[None, :], ky[:, None], dtype)
-    C_TT, C_LL, C_ww, Y = _layer_modal_compliance(q, at_zero, E, nu, thickness)
-    # On an even grid the Nyquist frequency stands for +q and -q at once and can only carry
-    # a cosine, so the parts of C odd in that component (C_xy, C_xz, C_yz) cancel there.
-    # Dropping them keeps the operator mirror-symmetric as well as reciprocal.
-    keep_x = ~((n_cols % 2 == 0) & (jnp.arange(kx.shape[0]) == n_cols // 2))[None, :]
-    keep_y = ~((n_rows % 2 == 0) & (jnp.arange(ky.shape[0]) == n_rows // 2))[:, None]
-    C_xx = C_LL * cos * cos + C_TT * sin * sin
-    C_yy = C_LL * sin * sin + C_TT * cos * cos
-    C_xy = jnp.where(keep_x & keep_y, (C_LL - C_TT) * cos * sin, 0)
-    Y_x = jnp.where(keep_x, Y * qx, 0)
-    Y_y = jnp.where(keep_y, Y * qy, 0)
-
-    t_hat = jnp.fft.rfft2(traction)
-    as_complex = lambda a: a.astype(t_hat.dtype)
-    C_xx, C_yy, C_xy, C_ww = as_complex(C_xx), as_complex(C_yy), as_complex(C_xy), as_complex(C_ww)
-    # i Y q_x and i Y q_y: the normal/tangential coupling is a quarter-period phase shift.
-    iY_x = jax.lax.complex(jnp.zeros_like(Y_x), Y_x)
-    iY_y = jax.lax.complex(jnp.zeros_like(Y_y), Y_y)
-    tx, ty, p = t_hat
-    ux = C_xx * tx + C_xy * ty + iY_x * p
-    uy = C_xy * tx + C_yy * ty + iY_y * p
-    w = C_ww * p - iY_x * tx - iY_y * ty
-    return jnp.fft.irfft2(jnp.stack([ux, uy, w]), s=(n_rows, n_cols))
+    response = layer_response(traction.shape[1:], spacing, E, nu, thickness, dtype)
+    return response(jnp.asarray(traction, dtype))

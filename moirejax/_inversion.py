@@ -39,7 +39,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._band_model import complex_ratio, predicted_bands
+from ._band_model import band_model, BandModel, complex_ratio, predicted_bands
 from ._contact import Contact, NMM_PER_NM
 from ._device import Device
 from ._observability import stray_beat_clearance
@@ -180,6 +180,7 @@ class Inverter(eqx.Module):
 
     device: Device
     demodulator: Demodulator
+    model: BandModel
     reference: FringeFields
     model_reference: FringeFields
     fringe_weight: Float[Array, "families m n"]
@@ -263,6 +264,9 @@ class Inverter(eqx.Module):
                 offset = jnp.angle(jnp.sum(product, axis=(1, 2)))
                 self.device = eqx.tree_at(lambda d: d.optics.phase1, self.device, self.device.optics.phase1 + offset)
                 self.model_reference = self._predict_now(zero, self.reference.reference_wavevector)
+        # Every model evaluation of a solve refers to this unit and this reference: what does
+        # not depend on the load is computed once.
+        self.model = band_model(self.device, self.demodulator, self.model_shape, self.reference.reference_wavevector)
         # The demodulator divides by the apodization envelope, which amplifies noise near
         # the border; weighting by the envelope undoes that (and drops the border).
         self.fringe_weight = self.demodulator.fringe_envelope.astype(zero.dtype)
@@ -279,17 +283,9 @@ class Inverter(eqx.Module):
         # model's operations compiles on its own, which took 8 s of a first Inverter.
         return _bands_at_state(self.device, self.demodulator, y, reference_wavevector, self.model_shape)
 
-    def _predict(self, y, reference_wavevector) -> FringeFields:
-        wrench, contact, exposure = _unpack(y)
-        return predicted_bands(
-            self.device,
-            self.demodulator,
-            wrench,
-            contact,
-            exposure,
-            model_shape=self.model_shape,
-            reference_wavevector=reference_wavevector,
-        )
+    def _predict(self, y) -> FringeFields:
+        # Observed fields refer to the reference frame's wavevectors (`observe`), as the model does.
+        return self.model(*_unpack(y))
 
     def _unit_noise_residuals(self, samples: int = 48) -> Float[Array, "samples n"]:
         """Data residuals that unit white pixel noise alone produces, `samples` draws.
@@ -309,7 +305,7 @@ class Inverter(eqx.Module):
         return jax.lax.map(residual, frames)
 
     def _data_residuals(self, y, observed: FringeFields):
-        predicted = self._predict(y, observed.reference_wavevector)
+        predicted = self._predict(y)
         # Fixed-pattern correction by the reference frame (see the module docstring).
         fringe = predicted.fringe * complex_ratio(self.reference.fringe, self.model_reference.fringe)
         brightness = predicted.brightness - self.model_reference.brightness + self.reference.brightness

@@ -686,6 +686,72 @@ class Demodulator(eqx.Module):
         ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
         return raw / self._reference_response(reference_k, field.dtype) * ramp
 
+    def real_band_pass(
+        self,
+        shape: tuple[int, int],
+        reference_wavevector: Float[Array, "families 2"] | None = None,
+        dtype=float,
+    ) -> "RealBandPass":
+        r"""[`filter_baseband`][moirejax.Demodulator.filter_baseband] and
+        [`filter_brightness`][moirejax.Demodulator.filter_brightness] at once, for a real field
+        on a `shape` cell-centred grid over the frame, with everything but the field precomputed.
+
+        A real field $F$ holds its family-$f$ band as $a_f e^{i\mathbf K_f\cdot\mathbf x}$ +
+        c.c.; `filter_baseband(F e^{-i K.x})` moves it to baseband with a full-size complex
+        multiply and FFT per family. Here one `rfft2` of $F$ serves every band: the bin
+        $\mathbf K_f$ lies on is a whole bin of this grid too (it covers the same field), so the
+        shift is a window offset and a constant phase. A forward model that evaluates many
+        fields on one grid (an inversion's model evaluations) builds this once.
+
+        **Arguments:**
+
+        - `shape`: `(rows, cols)` of the field's grid; at least `crop_shape`, and fine enough
+          that every band lies inside its Nyquist limits.
+        - `reference_wavevector`: the measurement's `reference_wavevector`; the nominal
+          wavevectors if omitted.
+        - `dtype`: real precision of the fields.
+
+        **Returns:** a [`RealBandPass`][moirejax._observables.RealBandPass]; call it with the
+        field for `(fringe, brightness)` on the coarse grid.
+        """
+        rows, cols = (int(n) for n in shape)
+        m, n = self.crop_shape
+        h, w = self.frame_shape
+        if rows < m or cols < n:
+            raise ValueError(f"grid {shape} has fewer samples than crop_shape {self.crop_shape}.")
+        # The DC band last; every window must stay clear of this grid's Nyquist bins.
+        starts = (*self.crop_starts, (-(m // 2), -(n // 2)))
+        for row_start, col_start in starts:
+            inside_rows = -(rows // 2) < row_start and row_start + m <= rows // 2
+            inside_cols = -(cols // 2) < col_start and col_start + n <= cols // 2
+            if not (inside_rows and inside_cols):
+                raise ValueError(f"grid {shape} is too coarse for the bands of this demodulator; refine it.")
+        real_dtype = jnp.dtype(dtype)
+        complex_dtype = np.complex64 if real_dtype == np.float32 else np.complex128
+        nominal = self.wavevectors.astype(real_dtype)
+        reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(real_dtype)
+        frame_x0, frame_y0 = self._grid_origin(h, w, real_dtype)
+        grid_x0, grid_y0 = self._grid_origin(rows, cols, real_dtype)
+        dkx, dky = self._window_offsets(real_dtype)
+        k_bin = jnp.concatenate([self.bin_wavevectors.astype(real_dtype), jnp.zeros((1, 2), real_dtype)])
+        # As `_grid_band_pass`: DFT phases referred from this grid's sample (0, 0) to the
+        # frame's pixel (0, 0) and sample counts to the frame's; and the shift to bin k_bin,
+        # exp(-i k_bin.x) in space, is exp(-i k_bin.x_00) times a window offset.
+        phase = (k_bin[:, 0] * (frame_x0 - grid_x0) + k_bin[:, 1] * (frame_y0 - grid_y0))[:, None, None]
+        phase = phase + (dkx * (frame_x0 - grid_x0))[None, None, :] + (dky * (frame_y0 - grid_y0))[None, :, None]
+        transfer = jnp.concatenate([self.fringe_transfer, self.brightness_transfer[None]]).astype(complex_dtype)
+        spectral = transfer * _expi(jnp, phase) * (h * w / (rows * cols))
+        ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
+        return RealBandPass(
+            shape=(rows, cols),
+            crop_shape=(m, n),
+            window_starts=tuple(starts),
+            apodization=self.apodization(rows, cols).astype(real_dtype),
+            spectral=spectral,
+            spatial=ramp / self._reference_response(reference_k, complex_dtype),
+            brightness_normalisation=self.brightness_normalisation.astype(real_dtype),
+        )
+
     def filter_brightness(self, field: Float[Array, "rows cols"]) -> Float[Array, "m n"]:
         """Apply the measurement's brightness low-pass to a predicted brightness field.
 
@@ -705,6 +771,28 @@ class Demodulator(eqx.Module):
             field.astype(complex_dtype)[None], jnp.zeros((1, 2)), self.brightness_transfer[None]
         )
         return jnp.real(band[0]) * self.brightness_normalisation.astype(field.dtype)
+
+
+class RealBandPass(eqx.Module):
+    """A [`Demodulator`][moirejax.Demodulator]'s band-passes for real fields on one grid
+    (see [`Demodulator.real_band_pass`][moirejax.Demodulator.real_band_pass]): call it
+    with a `(rows, cols)` field for its `(fringe, brightness)` on the coarse grid."""
+
+    shape: tuple[int, int] = eqx.field(static=True)
+    crop_shape: tuple[int, int] = eqx.field(static=True)
+    window_starts: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    apodization: Float[Array, "rows cols"]
+    spectral: Complex[Array, "bands m n"]
+    spatial: Complex[Array, "families m n"]
+    brightness_normalisation: Float[Array, "m n"]
+
+    def __call__(self, field: Float[Array, "rows cols"]) -> tuple[Complex[Array, "families m n"], Float[Array, "m n"]]:
+        _check_shape("field", field.shape, self.shape)
+        m, n = self.crop_shape
+        spectrum = jnp.fft.rfft2(field * self.apodization)
+        windows = jnp.stack([_crop(jnp, spectrum, p, q, m, n) for p, q in self.window_starts])
+        bands = jnp.fft.ifft2(self.spectral * windows)
+        return bands[:-1] * self.spatial, jnp.real(bands[-1]) * self.brightness_normalisation
 
 
 class FringeObservables(eqx.Module):

@@ -21,7 +21,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from ._contact import Contact, surface_grid, surface_tractions, SurfaceGrid
 from ._device import Device
-from ._elastomer import surface_displacement
+from ._elastomer import layer_response, LayerResponse
 from ._optics import (
     background_radiance,
     binary_harmonics,
@@ -48,14 +48,31 @@ class Deformation(eqx.Module):
     light: Float[Array, "h w"]
 
 
+class Mechanics(eqx.Module):
+    """The contact surface's grid and the elastomer's response on it: everything
+    [`deformation`][] needs besides the load, built once per device and grid
+    ([`mechanics`][]). Call it with a wrench and a [`Contact`][] for the [`Deformation`][]."""
+
+    device: Device
+    grid: SurfaceGrid
+    response: LayerResponse
+
+    def __call__(self, wrench: Float[Array, "6"], contact: Contact) -> Deformation:
+        tractions = surface_tractions(wrench, contact, self.grid)
+        light = contact_light(self.device, tractions[2], wrench[2], contact, self.grid)
+        return Deformation(grid=self.grid, tractions=tractions, displacement=self.response(tractions), light=light)
+
+
+def mechanics(device: Device, shape: tuple[int, int]) -> Mechanics:
+    """The [`Mechanics`][] of `device` on a surface grid of `shape` cells."""
+    grid = surface_grid(shape, device.px_per_mm, (device.height, device.width), device.a, device.Z)
+    e = device.elastomer
+    return Mechanics(device=device, grid=grid, response=layer_response(shape, grid.spacing, e.E, e.nu, e.thickness))
+
+
 def deformation(device: Device, wrench: Float[Array, "6"], contact: Contact, shape: tuple[int, int]) -> Deformation:
     """Solve the elastomer for `wrench` applied through `contact`, on a grid of `shape` cells."""
-    grid = surface_grid(shape, device.px_per_mm, (device.height, device.width), device.a, device.Z)
-    tractions = surface_tractions(wrench, contact, grid)
-    e = device.elastomer
-    displacement = surface_displacement(tractions, grid.spacing, e.E, e.nu, e.thickness)
-    light = contact_light(device, tractions[2], wrench[2], contact, grid)
-    return Deformation(grid=grid, tractions=tractions, displacement=displacement, light=light)
+    return mechanics(device, shape)(wrench, contact)
 
 
 def grating_phases(
@@ -70,16 +87,26 @@ def grating_phases(
     $X = x (Z + a)/Z$ the surface point on the undeformed ray; reference grating:
     $\varphi_2 = k_2 \cdot x + \phi_2$.
     """
+    return upper_grating_phase(device, x, y, displacement), reference_grating_phase(device, x, y)
+
+
+def upper_grating_phase(
+    device: Device, x: Float[Array, "h w"], y: Float[Array, "h w"], displacement: Float[Array, "3 h w"]
+) -> Float[Array, "sets h w"]:
+    """The upper grating's phase $\varphi_1$ of [`grating_phases`][]: the only one a load moves."""
     ux, uy, w = displacement
     magnification = (device.Z + device.a) / device.Z
     shrink = 1 - w / (device.Z + device.a)
     X = x * magnification * shrink - ux
     Y = y * magnification * shrink - uy
     k1 = device.upper_wavevectors()
+    return k1[:, 0, None, None] * X[None] + k1[:, 1, None, None] * Y[None] + device.optics.phase1[:, None, None]
+
+
+def reference_grating_phase(device: Device, x: Float[Array, "h w"], y: Float[Array, "h w"]) -> Float[Array, "sets h w"]:
+    """The reference grating's phase $\varphi_2$ of [`grating_phases`][]."""
     k2 = device.reference_wavevectors()
-    phase1 = k1[:, 0, None, None] * X[None] + k1[:, 1, None, None] * Y[None] + device.optics.phase1[:, None, None]
-    phase2 = k2[:, 0, None, None] * x[None] + k2[:, 1, None, None] * y[None] + device.optics.phase2[:, None, None]
-    return phase1, phase2
+    return k2[:, 0, None, None] * x[None] + k2[:, 1, None, None] * y[None] + device.optics.phase2[:, None, None]
 
 
 def _upsample(field: Float[Array, "*c h w"], shape: tuple[int, int]) -> Float[Array, "*c H W"]:

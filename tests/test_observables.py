@@ -327,6 +327,31 @@ def test_filter_baseband_reproduces_measurement(demodulator):
     np.testing.assert_allclose(interior(modelled.phase_gradient, 4), interior(measured.phase_gradient, 4), atol=2e-3)
 
 
+@pytest.mark.parametrize("shape", [(96, 96), (128, 128)])
+def test_real_band_pass_is_filter_baseband_of_the_shifted_field(crossed, shape):
+    # One rfft2 of a real field on a model grid against the per-family path: shift each
+    # family to baseband by e^{-i K.x} and filter it, and filter the brightness.
+    demodulator = crossed
+    rows, cols = shape
+    xs = (np.arange(cols) - (cols - 1) / 2) * (W / cols) / PX_PER_MM
+    ys = ((rows - 1) / 2 - np.arange(rows)) * (H / rows) / PX_PER_MM
+    gx, gy = np.meshgrid(xs, ys)
+    bump = np.exp(-((gx - 3) ** 2 + (gy + 2) ** 2) / (2 * 4.0**2))
+    field = 0.5 + 0.1 * bump + 0.2 * sum(np.cos(k[0] * gx + k[1] * gy + 1.5 * bump) for k in (K1, K2))
+    reference_k = jnp.asarray(np.stack([K1, K2]) + 0.01)
+    fringe, brightness = demodulator.real_band_pass(shape, reference_k)(jnp.asarray(field))
+    K = np.asarray(demodulator.wavevectors)
+    shifted = np.stack([field * np.exp(-1j * (k[0] * gx + k[1] * gy)) for k in K])
+    expected = demodulator.filter_baseband(jnp.asarray(shifted), reference_k)
+    scale = np.abs(np.asarray(expected)).max()
+    np.testing.assert_allclose(np.asarray(fringe), np.asarray(expected), rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(
+        np.asarray(brightness), np.asarray(demodulator.filter_brightness(jnp.asarray(field))), rtol=0, atol=1e-9
+    )
+    with pytest.raises(ValueError, match="too coarse"):
+        demodulator.real_band_pass((32, 32))
+
+
 def test_transfer_function(demodulator):
     k_norm = np.hypot(*K1)
     at = demodulator.transfer_function(jnp.asarray([K1[0], K1[0] + 0.2 * k_norm]), jnp.asarray([K1[1], K1[1]]))
