@@ -59,6 +59,7 @@ from ._geometry import (
 from ._inversion import (
     default_model_shape as default_model_shape,
     Estimate as Estimate,
+    frame_tracker as frame_tracker,
     invert_batch as invert_batch,
     invert_chunk as invert_chunk,
     invert_frame as invert_frame,

@@ -10,7 +10,7 @@ import jax
 import numpy as np
 
 from ._fileio import atomic_write_text, DataError
-from ._inversion import Estimate, invert_chunk, Inverter, Status, track_frame
+from ._inversion import Estimate, frame_tracker, invert_chunk, Inverter, Status
 
 
 WRENCH_COLUMNS = ("fx", "fy", "fz", "tx", "ty", "tz")
@@ -148,7 +148,7 @@ def invert_recording(
 ) -> dict[str, int]:
     """Invert every frame of `source` and write `out_csv` (atomically, at the end).
 
-    Frames are inverted as a stream ([`track_frame`][]: each continues from the last
+    Frames are inverted as a stream ([`frame_tracker`][]: each continues from the last
     good one), or, with `batch > 1`, in chunks of `batch` consecutive frames vectorised
     from the previous chunk's solution ([`invert_chunk`][]; higher throughput, the same
     estimates to about one standard error). Bad frames give status rows, never an
@@ -160,6 +160,7 @@ def invert_recording(
     rows: list[list] = []
     counts: dict[str, int] = {}
     track = inverter.cold_track()
+    step = frame_tracker(inverter)
     pending: list[tuple[str, np.ndarray]] = []
 
     def flush():
@@ -193,7 +194,7 @@ def invert_recording(
             if len(pending) == batch:
                 flush()
             continue
-        estimate, track = track_frame(inverter, frame, track)
+        estimate, track = step(frame, track)
         rows.extend(_rows([name], _expand(estimate), [None], head))
     flush()
     for row in rows:

@@ -177,6 +177,19 @@ def test_tracking_agrees_with_levenberg_marquardt_and_never_retraces(mid, invert
     assert np.median(steps[1:]) <= 3, steps
 
 
+def test_frame_tracker_is_track_frame_compiled_once(inverter, stream):
+    _, frames = stream
+    step = mj.frame_tracker(inverter)
+    ours, theirs = inverter.cold_track(), inverter.cold_track()
+    for frame in frames[:4]:
+        estimate, ours = step(frame, ours)
+        expected, theirs = mj.track_frame(inverter, frame, theirs)
+        np.testing.assert_allclose(np.asarray(estimate.wrench), np.asarray(expected.wrench), rtol=1e-6, atol=1e-9)
+        assert int(estimate.status) == int(expected.status)
+    # One program for the whole stream: `step` is a `jax.jit` over (inverter arrays, frame, track).
+    assert step.func._cache_size() == 1
+
+
 def test_sequence_in_chunks_matches_the_stream_and_reports_bad_frames(mid, inverter, stream):
     wrenches, frames = stream
     frames = list(frames)

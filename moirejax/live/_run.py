@@ -25,7 +25,7 @@ import numpy as np
 from .._contact import Contact
 from .._device import Device
 from .._fileio import DataError
-from .._inversion import Inverter, Status, track_frame
+from .._inversion import frame_tracker, Inverter, Status
 from .._simulate import load_schedule, LoadSchedule, Simulator
 from ._camera import (
     AbstractFrameSource,
@@ -77,12 +77,13 @@ class TactileProcessor:
     continues from the previous frame's solution and Jacobian while frames converge; any
     other outcome resets it to a cold start, so one bad frame cannot drag the next ones
     off. Frames are cast to the device's dtype, so every call hits the one compiled
-    `track_frame`.
+    step ([`frame_tracker`][]).
     """
 
     def __init__(self, inverter: Inverter, warmup_frame: np.ndarray | None = None):
         device = inverter.device
         self.inverter = inverter
+        self.step = frame_tracker(inverter)
         self.shape = (device.height, device.width)
         self.dtype = np.dtype(device.p1.dtype)
         self.cold_track = inverter.cold_track()
@@ -104,7 +105,7 @@ class TactileProcessor:
             status = Status.WRONG_SIZE
             message = f"{status.message} (frame {frame.shape}, device {self.shape}; rectify the camera frames)"
             return np.full(6, np.nan), None, status.name.lower(), message
-        estimate, self.track = track_frame(self.inverter, frame, self.track)
+        estimate, self.track = self.step(frame, self.track)
         status = Status(int(estimate.status))
         return (
             np.asarray(estimate.wrench, np.float64),
