@@ -29,7 +29,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from ._band_model import complex_ratio, predicted_bands
+from ._band_model import band_model, BandModel, complex_ratio
 from ._contact import Contact, NMM_PER_NM
 from ._device import Device, Elastomer, Optics
 from ._fileio import DataError, read_json
@@ -153,19 +153,16 @@ class _Problem(eqx.Module):
         recipe = Recipe(name="fit", free=self.recipe_free, log=self.recipe_log)
         return with_parameters(self.inverter.device, recipe, theta)
 
-    def frame_residuals(self, theta, latent, wrench, observed: FringeFields, model_reference: FringeFields):
+    def model(self, theta) -> BandModel:
+        """The band model of the unit at `theta`, built once for every frame it predicts.
+        Observed fields refer to the reference frame's wavevectors ([`Inverter.observe`][])."""
         inv = self.inverter
-        device = self.device(theta)
+        return band_model(self.device(theta), inv.demodulator, inv.model_shape, inv.reference.reference_wavevector)
+
+    def frame_residuals(self, model: BandModel, latent, wrench, observed: FringeFields, model_reference: FringeFields):
+        inv = self.inverter
         contact = Contact(x0=latent[0], y0=latent[1], radius=jnp.exp(latent[2]))
-        predicted = predicted_bands(
-            device,
-            inv.demodulator,
-            wrench,
-            contact,
-            jnp.exp(latent[3]),
-            model_shape=inv.model_shape,
-            reference_wavevector=observed.reference_wavevector,
-        )
+        predicted = model(wrench, contact, jnp.exp(latent[3]))
         fringe = predicted.fringe * complex_ratio(inv.reference.fringe, model_reference.fringe)
         brightness = predicted.brightness - model_reference.brightness + inv.reference.brightness
         df = (observed.fringe - fringe) * inv.fringe_weight.astype(fringe.dtype)
@@ -174,25 +171,18 @@ class _Problem(eqx.Module):
         prior = (latent[2] - math.log(3.5)) / 0.6 * 1e-3
         return jnp.concatenate([df.real.ravel(), df.imag.ravel(), db.ravel(), prior[None]])
 
-    def model_reference(self, theta):
-        inv = self.inverter
-        return predicted_bands(
-            self.device(theta),
-            inv.demodulator,
-            jnp.zeros(6, theta.dtype),
-            Contact(),
-            model_shape=inv.model_shape,
-            reference_wavevector=inv.reference.reference_wavevector,
-        )
+
+def _zero_load(model: BandModel) -> FringeFields:
+    return model(jnp.zeros(6, model.x.dtype), Contact())
 
 
 @eqx.filter_jit
 def _parameter_solve(problem: _Problem, theta, latents, wrenches, observed, prior_mean, prior_weight, steps: int):
     def data_residuals(theta, args):
         latents, wrenches, observed = args
-        reference = problem.model_reference(theta)
+        model = problem.model(theta)
         per_frame = jax.vmap(problem.frame_residuals, in_axes=(None, 0, 0, 0, None))(
-            theta, latents, wrenches, observed, reference
+            model, latents, wrenches, observed, _zero_load(model)
         )
         return per_frame.ravel()
 
@@ -214,11 +204,12 @@ def _parameter_solve(problem: _Problem, theta, latents, wrenches, observed, prio
 
 @eqx.filter_jit
 def _latent_solve(problem: _Problem, theta, latents, wrenches, observed, steps: int):
-    reference = problem.model_reference(theta)
+    model = problem.model(theta)
+    reference = _zero_load(model)
 
     def one(latent, wrench, obs):
         def residuals(latent, args):
-            return problem.frame_residuals(theta, latent, wrench, obs, reference)
+            return problem.frame_residuals(model, latent, wrench, obs, reference)
 
         solver = optx.LevenbergMarquardt(rtol=1e-5, atol=1e-6, linear_solver=lx.QR())
         sol = optx.least_squares(residuals, solver, latent, max_steps=steps, throw=False)
