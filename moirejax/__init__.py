@@ -2,7 +2,7 @@
 
 import importlib.metadata
 
-from ._band_model import predicted_bands as predicted_bands
+from ._band_model import band_model as band_model, BandModel as BandModel, predicted_bands as predicted_bands
 from ._calibration import (
     fit_physical_parameters as fit_physical_parameters,
     load_recipe as load_recipe,
@@ -30,6 +30,8 @@ from ._device import (
 from ._elastomer import (
     half_space_compliance as half_space_compliance,
     layer_compliance as layer_compliance,
+    layer_response as layer_response,
+    LayerResponse as LayerResponse,
     surface_displacement as surface_displacement,
 )
 from ._fileio import (

@@ -223,7 +223,6 @@ class Inverter(eqx.Module):
             if match_reference:
                 device = match_reference_geometry(device, reference)
         self.device = device
-        self.model_shape = default_model_shape(device) if model_shape is None else tuple(model_shape)
         clearance = float(np.min(np.asarray(stray_beat_clearance(device, band_fraction))))
         if clearance < 1.0:
             warnings.warn(
@@ -245,6 +244,13 @@ class Inverter(eqx.Module):
             crop_shape=crop_shape,
             band_fraction=band_fraction,
         )
+        if model_shape is None:
+            # A size from the environment (`MOIREJAX_MODEL_GRID`) never goes below what the
+            # bands need: a coarser grid would fold the fringe band over its Nyquist limit.
+            needed = self.demodulator.smallest_band_grid()
+            rows, cols = default_model_shape(device)
+            model_shape = (max(rows, needed), max(cols, needed))
+        self.model_shape = (int(model_shape[0]), int(model_shape[1]))
         zero = initial_state(dtype=device.p1.dtype)
         if reference is None:
             self.model_reference = self._predict_now(zero, None)

@@ -686,11 +686,23 @@ class Demodulator(eqx.Module):
         ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
         return raw / self._reference_response(reference_k, field.dtype) * ramp
 
+    def smallest_band_grid(self) -> int:
+        r"""The smallest square grid (a multiple of 16) whose spectrum holds every band window
+        away from its Nyquist bins: the coarsest grid [`real_band_pass`][moirejax.Demodulator.real_band_pass]
+        accepts (a band of wavevector $\mathbf K$ needs about $|\mathbf K|/\Delta k$ + `crop_shape`/2
+        bins each side)."""
+        m, n = self.crop_shape
+        half = max(
+            max(row_start + m, 1 - row_start, col_start + n, 1 - col_start)
+            for row_start, col_start in (*self.crop_starts, (-(m // 2), -(n // 2)))
+        )
+        return 16 * math.ceil(2 * half / 16)
+
     def real_band_pass(
         self,
         shape: tuple[int, int],
         reference_wavevector: Float[Array, "families 2"] | None = None,
-        dtype=float,
+        dtype=None,
     ) -> "RealBandPass":
         r"""[`filter_baseband`][moirejax.Demodulator.filter_baseband] and
         [`filter_brightness`][moirejax.Demodulator.filter_brightness] at once, for a real field
@@ -709,7 +721,7 @@ class Demodulator(eqx.Module):
           that every band lies inside its Nyquist limits.
         - `reference_wavevector`: the measurement's `reference_wavevector`; the nominal
           wavevectors if omitted.
-        - `dtype`: real precision of the fields.
+        - `dtype`: real precision of the fields (default: JAX's default float).
 
         **Returns:** a [`RealBandPass`][moirejax._observables.RealBandPass]; call it with the
         field for `(fringe, brightness)` on the coarse grid.
@@ -726,7 +738,7 @@ class Demodulator(eqx.Module):
             inside_cols = -(cols // 2) < col_start and col_start + n <= cols // 2
             if not (inside_rows and inside_cols):
                 raise ValueError(f"grid {shape} is too coarse for the bands of this demodulator; refine it.")
-        real_dtype = jnp.dtype(dtype)
+        real_dtype = jnp.dtype(jnp.result_type(float) if dtype is None else dtype)
         complex_dtype = np.complex64 if real_dtype == np.float32 else np.complex128
         nominal = self.wavevectors.astype(real_dtype)
         reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(real_dtype)

@@ -293,7 +293,12 @@ def test_stray_beats_in_a_band_are_found_and_refused():
     assert float(jnp.min(mj.stray_beat_clearance(rational))) < 1e-3
     assert float(jnp.min(mj.stray_beat_clearance(dataclasses.replace(mid, p1=p1, p2=p2, harmonics=2)))) > 1
     with pytest.warns(UserWarning, match="mixed-order grating beat"):
-        mj.Inverter(rational)
+        inverter = mj.Inverter(rational)
+    # Its fringe band sits 18 bins out: the suite's 64 x 64 override (MOIREJAX_MODEL_GRID)
+    # would fold it over the grid's Nyquist limit, so the inverter takes the 80 x 80 it needs.
+    assert inverter.model_shape == (80, 80) == (inverter.demodulator.smallest_band_grid(),) * 2
+    with pytest.warns(UserWarning, match="mixed-order"), pytest.raises(ValueError, match="too coarse"):
+        mj.Inverter(rational, model_shape=(64, 64))
 
 
 def test_model_grid_resolves_the_moire_period_and_the_contact():

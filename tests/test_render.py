@@ -137,3 +137,29 @@ def test_high_fidelity_frame_is_quantised_noisy_and_close_to_model():
     assert np.allclose(high * 255, np.round(high * 255))
     # Same moire: the mean brightness agrees within the binary-vs-truncated-harmonics gap.
     assert abs(high.mean() - model.mean()) < 0.1 * model.mean()
+
+
+def test_band_model_predicts_what_the_demodulator_reads_from_a_rendered_frame():
+    # The inversion's forward model skips the render: the low-frequency part of the frame on
+    # a 96 x 96 grid through the demodulator's band-passes. Against the full render (512 x 512,
+    # elastomer on 256 x 256, every modelled harmonic, lens PSF) demodulated for real:
+    device = mj.preset("mid")
+    demodulator = mj.Demodulator((device.height, device.width), 16.0, np.asarray(device.moire_wavevectors()))
+    wrench, contact = jnp.asarray([0.05, -0.03, 0.6, 0.002, -0.001, 0.003]), Contact(1.0, -0.5, 3.5)
+    K = demodulator.wavevectors
+    measured = demodulator(render_frame(device, wrench, contact), K)
+    unloaded = demodulator(render_frame(device, jnp.zeros(6), Contact()), K)
+    model = mj.band_model(device, demodulator, (96, 96), K)
+    predicted = model(wrench, contact)
+    # Weighted by the envelope: the demodulator divides by it, which blows up the border.
+    envelope = np.asarray(demodulator.fringe_envelope)
+    scale = np.max(envelope * np.abs(np.asarray(unloaded.fringe)))
+    error = np.max(envelope * np.abs(np.asarray(predicted.fringe - measured.fringe))) / scale
+    change = np.max(envelope * np.abs(np.asarray(measured.fringe - unloaded.fringe))) / scale
+    assert change > 0.1 and error < 2e-3 * change  # the model follows the load to 0.1% (0.06% of the amplitude)
+    weight = np.asarray(demodulator.brightness_envelope)
+    brightness_scale = np.max(weight * np.abs(np.asarray(measured.brightness)))
+    assert np.max(weight * np.abs(np.asarray(predicted.brightness - measured.brightness))) < 1e-4 * brightness_scale
+    # The model built once is `predicted_bands` evaluated afresh.
+    again = mj.predicted_bands(device, demodulator, wrench, contact, model_shape=(96, 96), reference_wavevector=K)
+    np.testing.assert_allclose(np.asarray(predicted.fringe), np.asarray(again.fringe), rtol=0, atol=1e-12 * scale)
