@@ -845,16 +845,17 @@ def optimise_design(
     carriers too: optimised for it, the search from Mid found coarse pitches whose gain
     lay in the carriers, and the band inversion scattered 5x as much as on Mid there.
     `benchmarks/design_check.py` checks an optimum by inverting simulated frames: from Mid,
-    the default search ends at p1 0.327, p2 0.321 mm, Δα −1.9°, a 1.41 mm period, with
+    the default search ends at p1 0.327, p2 0.321 mm, Δα −2.1°, a 1.40 mm period, with
     0.34x Mid's worst-axis band bound; at the same camera noise its band inversion reads
-    40 mixed loads with 0.52-0.95x Mid's RMSE on every axis, at about 2.4x the solve
+    40 mixed loads with 0.57-0.94x Mid's RMSE on every axis, at about 1.8x the solve
     time (a 192 x 192 model grid against 96 x 96, [`model_grid_for`][]).
 
     **Arguments:** the limits above, and
 
-    - `min_fringes`: fringes across the frame. Without this limit the search from Mid
-      ended at p1' = p2 within 0.3% (a 226 mm period, no fringes in a 32 mm frame): the
-      bound still counts the carriers, but nothing is left for the band inversion, whose
+    - `min_fringes`: fringes across the frame. Without this limit the search for the
+      whole-frame bound from Mid ended at p1' = p2 within 0.3% (a 226 mm period, no fringes
+      in a 32 mm frame): that bound still counts the carriers, but nothing is left for the
+      band inversion, whose
       bands are centred on the moiré wavevector with a radius of 0.45 |K| and so need
       a few Fourier bins between the fringe band and the brightness band. The paper's
       designs have 5.3 (Sparse) to 40 (Dense) fringes across a 32 mm frame.

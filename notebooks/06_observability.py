@@ -285,14 +285,14 @@ plt.show()
 
 # %% [markdown]
 # What a full run from Mid finds (300 steps, 512 x 512 frame): nearly equal pitches (p1 0.327, p2
-# 0.321 mm) turned by 1.9°, a moiré period of 1.41 mm instead of 4.2. Shorter fringes widen the bands
+# 0.321 mm) turned by 2.1°, a moiré period of 1.40 mm instead of 4.2. Shorter fringes widen the bands
 # (their radius is 0.45 |K|), so the bands hold more of the frame's information; the phase change
 # per newton stays Mid's (it is set by $p_1$). The band bound falls to 0.34x Mid's on shear and twist,
 # 0.42x on tilt, 0.86x on the press. `benchmarks/design_check.py` inverts simulated frames of both
-# designs at the same camera noise: 100 repeats of the nominal load scatter 0.38-0.70x as much on
-# shear, tilt and twist (the press 1.01x), and 40 mixed loads come out with 0.52-0.95x Mid's RMSE on
-# every axis. The price: the inversion needs a 192 x 192 model grid instead of 96 x 96 (2.4x the
-# solve time), and without noise its model floor on shear is 1.3-2x Mid's.
+# designs at the same camera noise: 100 repeats of the nominal load scatter 0.37-0.70x as much on
+# shear, tilt and twist (the press 1.02x), and 40 mixed loads come out with 0.57-0.94x Mid's RMSE on
+# every axis. The price: the inversion needs a 192 x 192 model grid instead of 96 x 96 (1.8x the
+# solve time), and without noise its model floor on shear is 1.4-1.9x Mid's.
 #
 # With the whole-frame bound instead (`estimator="pixels"`), or a phase limit of $\pi$, the search
 # goes elsewhere: coarser pitches whose gain lies in the carriers or that halve every phase change
