@@ -426,7 +426,7 @@ class Inverter(eqx.Module):
         # the field is outside any contact), scaled to a Gaussian sigma. Every fourth value
         # is plenty (1280 for crossed grids: 3.5% scatter) and sorts 5x faster than all;
         # the level only weighs the priors and sizes the steps in standard errors.
-        noise = jnp.maximum(jnp.median(jnp.abs(r_zero[::4])) / 0.6745, 1e-9)
+        noise = jnp.maximum(_median(jnp.abs(r_zero[::4])) / 0.6745, 1e-9)
         return screen, observed, r_zero, noise
 
     def _prior_jacobian(self, y, noise):
@@ -764,6 +764,14 @@ class _Screen(eqx.Module):
     finite: Bool[Array, ""]
     dark: Bool[Array, ""]
     saturated: Bool[Array, ""]
+
+
+def _median(values: Float[Array, " n"]) -> Float[Array, ""]:
+    """`jnp.median` by partition instead of a full sort: 5x faster on CPU for the 1280 values
+    of a frame's noise level (0.02 against 0.13 ms), the same number."""
+    n = values.shape[0]
+    upper = jnp.partition(values, n // 2)
+    return upper[n // 2] if n % 2 else 0.5 * (jnp.max(upper[: n // 2]) + upper[n // 2])
 
 
 def _status(result, screen: _Screen, observed, reference, in_contact, y):

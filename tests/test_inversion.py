@@ -9,7 +9,16 @@ import pytest
 
 import moirejax as mj
 from moirejax._contact import Contact
-from moirejax._inversion import invert_batch, invert_frame, invert_sequence, Inverter, Status, track_frame, WRENCH_SCALE
+from moirejax._inversion import (
+    _median,
+    invert_batch,
+    invert_frame,
+    invert_sequence,
+    Inverter,
+    Status,
+    track_frame,
+    WRENCH_SCALE,
+)
 from moirejax._render import render_frame
 from moirejax._simulate import load_schedule
 
@@ -175,6 +184,12 @@ def test_tracking_agrees_with_levenberg_marquardt_and_never_retraces(mid, invert
     # After the first frame the frozen-Jacobian iterations carry the stream (a few model
     # evaluations per frame; Levenberg-Marquardt would take ten or more steps).
     assert np.median(steps[1:]) <= 3, steps
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 1280, 1281])
+def test_noise_level_median_is_numpys(n):
+    values = np.random.default_rng(n).normal(size=n)
+    assert float(_median(jnp.asarray(values))) == pytest.approx(float(np.median(values)), rel=1e-12)
 
 
 def test_frame_tracker_is_track_frame_compiled_once(inverter, stream, monkeypatch):
