@@ -54,7 +54,6 @@ class BandModel(eqx.Module):
     unit; this is what makes each evaluation cost little more than the load's own work.
     Call it with `(wrench, contact, exposure)`."""
 
-    device: Device
     mechanics: Mechanics
     x: Float[Array, "h w"]
     y: Float[Array, "h w"]
@@ -66,7 +65,7 @@ class BandModel(eqx.Module):
     reference_wavevector: Float[Array, "families 2"]
 
     def __call__(self, wrench: Float[Array, "6"], contact: Contact, exposure: ArrayLike = 1.0) -> FringeFields:
-        device = self.device
+        device = self.mechanics.device
         state = self.mechanics(wrench, contact)
         beat = upper_grating_phase(device, self.x, self.y, state.displacement) - self.reference_phase
         # Everything of the frame below the carriers: the product over line sets of their
@@ -91,7 +90,6 @@ def band_model(
     x, y = image_coordinates(device, model_shape)
     weights, mean_reference = beat_coefficients(device)
     return BandModel(
-        device=device,
         mechanics=mechanics(device, model_shape),
         x=x,
         y=y,

@@ -93,7 +93,7 @@ def grating_phases(
 def upper_grating_phase(
     device: Device, x: Float[Array, "h w"], y: Float[Array, "h w"], displacement: Float[Array, "3 h w"]
 ) -> Float[Array, "sets h w"]:
-    """The upper grating's phase $\varphi_1$ of [`grating_phases`][]: the only one a load moves."""
+    r"""The upper grating's phase $\varphi_1$ of [`grating_phases`][]: the only one a load moves."""
     ux, uy, w = displacement
     magnification = (device.Z + device.a) / device.Z
     shrink = 1 - w / (device.Z + device.a)
@@ -104,7 +104,7 @@ def upper_grating_phase(
 
 
 def reference_grating_phase(device: Device, x: Float[Array, "h w"], y: Float[Array, "h w"]) -> Float[Array, "sets h w"]:
-    """The reference grating's phase $\varphi_2$ of [`grating_phases`][]."""
+    r"""The reference grating's phase $\varphi_2$ of [`grating_phases`][]."""
     k2 = device.reference_wavevectors()
     return k2[:, 0, None, None] * x[None] + k2[:, 1, None, None] * y[None] + device.optics.phase2[:, None, None]
 
