@@ -1,6 +1,7 @@
 """The `moirejax` command line: one subcommand per thing a user does."""
 
 import argparse
+import importlib.metadata
 import json
 import math
 import os
@@ -272,6 +273,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="moirejax",
         description="Design, simulate, calibrate and invert moire visuotactile sensors.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {importlib.metadata.version('moirejax')}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("design", help="geometry and sensitivity table of a design")

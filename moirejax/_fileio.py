@@ -1,6 +1,7 @@
 """Atomic file writes and JSON-Schema validation for every file moirejax reads or writes."""
 
 import functools
+import importlib.resources
 import json
 import os
 import tempfile
@@ -8,9 +9,6 @@ from pathlib import Path
 from typing import Any
 
 import jsonschema
-
-
-SCHEMA_DIR = Path(__file__).resolve().parent / "data_schema"
 
 
 # The process umask, read once: os.umask can only be read by setting it.
@@ -60,9 +58,12 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 @functools.cache
 def load_schema(name: str) -> dict[str, Any]:
-    """Load `data_schema/<name>.schema.json`."""
-    with open(SCHEMA_DIR / f"{name}.schema.json", encoding="utf-8") as f:
-        return json.load(f)
+    """Load the package's `data_schema/<name>.schema.json`.
+
+    Read through `importlib.resources`, so it works from a wheel, a zip or a checkout alike.
+    """
+    schema = importlib.resources.files("moirejax").joinpath("data_schema", f"{name}.schema.json")
+    return json.loads(schema.read_text(encoding="utf-8"))
 
 
 def validate_json(obj: Any, schema_name: str, *, source: str = "<memory>") -> None:
