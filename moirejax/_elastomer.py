@@ -26,7 +26,7 @@ $h/M$, $M = 2\mu(1-\nu)/(1-2\nu)$.
 
 The sign of $C_{Lw}$ holds for the repository's Fourier convention
 $f(x) = \int \hat f(q)\, e^{+i q\cdot x}$ (so $\partial_x \to i q_x$, see
-`docs/CONVENTIONS.md`). On a half-space it pulls the surface radially inward under a
+`docs/conventions.md`). On a half-space it pulls the surface radially inward under a
 pressure (Boussinesq, $\nu < 1/2$). In a thin bonded layer near incompressibility the
 numerator turns negative and the pressed material is squeezed outward: the coupling that
 lets a grating on the surface see the normal load.

@@ -292,7 +292,7 @@ def band_weight(device: Device, band_fraction: float = BAND_FRACTION) -> Float[A
     h, w = device.height, device.width
     dtype = device.p1.dtype
     kx = 2 * jnp.pi * jnp.fft.fftfreq(w).astype(dtype) * device.px_per_mm
-    # Rows run towards -y (docs/CONVENTIONS.md).
+    # Rows run towards -y (docs/conventions.md).
     ky = -2 * jnp.pi * jnp.fft.fftfreq(h).astype(dtype) * device.px_per_mm
     KX, KY = kx[None, :], ky[:, None]
     K = device.moire_wavevectors()

@@ -185,7 +185,7 @@ def test_half_space_at_incompressibility_has_no_normal_tangential_coupling():
 
 
 def _grid(n, dx):
-    """Rectified-plane coordinates of an n x n grid (CONVENTIONS.md: y up, row 0 on top)."""
+    """Rectified-plane coordinates of an n x n grid (docs/conventions.md: y up, row 0 on top)."""
     coords = (np.arange(n) - (n - 1) / 2) * dx
     x, y = np.meshgrid(coords, -coords)
     return x, y, np.hypot(x, y)

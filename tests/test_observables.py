@@ -1,6 +1,6 @@
 """Moire observables: Fourier-transform demodulation against independent references.
 
-Frames are synthesised here in numpy straight from `docs/CONVENTIONS.md` (pixel (i, j) at
+Frames are synthesised here in numpy straight from `docs/conventions.md` (pixel (i, j) at
 x = (j - (w-1)/2)/s, y = ((h-1)/2 - i)/s), never with the code under test. References:
 the analytic fringe parameters, a zero-padded Hann-windowed numpy FFT with scikit-image's
 peak finder, `skimage.restoration.unwrap_phase`, `cv2.moments`, and finite differences.

@@ -3,7 +3,7 @@ r"""One-time pixel-to-millimetre rectification from an image of a pressed cylind
 A grid of cylinders pressed on the sensor shows as a grid of bright (or dark) blobs.
 Their sub-pixel centroids, ordered into the grid, are matched to their known positions
 in mm and a homography (optionally with radial distortion $k_1, k_2$ fitted jointly)
-maps camera pixels to the contact-plane frame of `docs/CONVENTIONS.md`: x right, y up,
+maps camera pixels to the contact-plane frame of `docs/conventions.md`: x right, y up,
 origin at the grid centre. The rectified output of `out_size = (w, h)` pixels at
 `px_per_mm` puts that origin at the image centre, so pixel (i, j) sits at
 $x_j = (j - (w-1)/2)/\text{px\_per\_mm}$, $y_i = ((h-1)/2 - i)/\text{px\_per\_mm}$.

@@ -7,7 +7,7 @@ disk or a UDP port nobody listens on cannot stop the sensor loop.
 A record is one JSON object per line:
 `{"stamp": s, "frame": int, "mode": "vision"|"tactile", "status": str, "force": [fx, fy, fz] | null,
 "torque": [tx, ty, tz] | null, "covariance": 6x6 | null, "latency_ms": float, "message": str}`
-with forces in N, torques in N*m (wrench convention of `docs/CONVENTIONS.md`) and the
+with forces in N, torques in N*m (wrench convention of `docs/conventions.md`) and the
 covariance over `[fx, fy, fz, tx, ty, tz]` in those units.
 """
 

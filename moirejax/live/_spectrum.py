@@ -1,7 +1,7 @@
 """Spectral peak finding and wavevector unit conversions shared by the gate and vision mode.
 
 Internally wavevectors are in rad per pixel along image indices, `(k_col, k_row)`, so a
-fringe is `cos(k_col * j + k_row * i)`. Public wavevectors follow `docs/CONVENTIONS.md`:
+fringe is `cos(k_col * j + k_row * i)`. Public wavevectors follow `docs/conventions.md`:
 `(kx, ky)` in rad/mm with y up, so `k_col = kx / px_per_mm` and `k_row = -ky / px_per_mm`.
 """
 
