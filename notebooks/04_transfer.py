@@ -26,7 +26,7 @@
 #
 # `transfer(fit_a_json, data_b, fit_b_json, max_frames=20)` starts from unit A's fitted device and
 # refits, on at most 20 frames of unit B, only what varies from unit to unit (the `transfer` recipe of
-# `fits/recipes/transfer.json`: stiffness, glow gain, optical gain, with priors around A's values),
+# `moirejax/fits/recipes/transfer.json`: stiffness, glow gain, optical gain, with priors around A's values),
 # keeping A's residual head. This notebook compares, on
 # held-out mixed loads of unit B:
 #
@@ -68,7 +68,7 @@ TRANSFER_FRAMES = 10 if SMOKE else 20
 # parameters on exactly as many frames as the transfer uses, so that both fits run the same
 # compiled solver; at full size it gets the default recipe on a full session.
 N_CALIBRATION_A = TRANSFER_FRAMES + 2 if SMOKE else 300
-TRANSFER_RECIPE = load_recipe("transfer")  # fits/recipes/transfer.json
+TRANSFER_RECIPE = load_recipe("transfer")  # moirejax/fits/recipes/transfer.json
 RECIPE_A = (
     TRANSFER_RECIPE.replace(name="unit-smoke", rounds=1, parameter_frames=TRANSFER_FRAMES)
     if SMOKE
