@@ -9,7 +9,8 @@ import pytest
 
 import moirejax as mj
 from moirejax._contact import Contact
-from moirejax._render import deformation, render_deformed, render_frame, render_frame_high
+from moirejax._optics import image_coordinates
+from moirejax._render import deformation, render_deformed, render_frame, render_frame_high, upper_grating_phase
 
 from .helpers import check_grad_against_fd, spectral_peak, wrap
 
@@ -163,3 +164,30 @@ def test_band_model_predicts_what_the_demodulator_reads_from_a_rendered_frame():
     # The model built once is `predicted_bands` evaluated afresh.
     again = mj.predicted_bands(device, demodulator, wrench, contact, model_shape=(96, 96), reference_wavevector=K)
     np.testing.assert_allclose(np.asarray(predicted.fringe), np.asarray(again.fringe), rtol=0, atol=1e-12 * scale)
+
+
+def test_upper_grating_is_read_at_its_material_point():
+    # The grating moves with the material: under an affine displacement u = G X of the
+    # surface (a twist of 0.1 rad plus a 3% stretch, far beyond the linear regime's
+    # X0 = Xs - u(Xs)), the ray meeting the surface at Xs sees the grating's material point
+    # X0 = (I + G)^-1 Xs exactly.
+    device = mj.preset("mid", height=64, width=64)
+    x, y = image_coordinates(device)
+    magnification = (device.Z + device.a) / device.Z
+    G = np.array([[0.03, -0.1], [0.1, 0.03]])
+    X, Y = x * magnification, y * magnification
+    displacement = jnp.stack([G[0, 0] * X + G[0, 1] * Y, G[1, 0] * X + G[1, 1] * Y, jnp.zeros_like(X)])
+    phase = upper_grating_phase(device, x, y, displacement)
+    inverse = np.linalg.inv(np.eye(2) + G)
+    X0 = inverse[0, 0] * X + inverse[0, 1] * Y
+    Y0 = inverse[1, 0] * X + inverse[1, 1] * Y
+    k1 = np.asarray(device.upper_wavevectors())
+    expected = (
+        k1[:, 0, None, None] * X0[None]
+        + k1[:, 1, None, None] * Y0[None]
+        + np.asarray(device.optics.phase1)[:, None, None]
+    )
+    np.testing.assert_allclose(np.asarray(phase), np.asarray(expected), atol=1e-9)
+    # The first-order reading X0 = Xs - u(Xs) would be off by k1 |G^2 X|: radians at the edge.
+    first_order = k1[0, 0] * (X - displacement[0]) + k1[0, 1] * (Y - displacement[1])
+    assert np.max(np.abs(np.asarray(first_order) - np.asarray(expected[0]))) > 0.5
