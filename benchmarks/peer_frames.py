@@ -1,0 +1,98 @@
+"""Accuracy on frames moirejax did not render: the independent ray-casting renderer.
+
+    python benchmarks/peer_frames.py --data DIR [--json]
+    python benchmarks/peer_frames.py --render 200 --seed 3 [--json]
+
+`--data` reads a folder written by the peer renderer (`frames/*.png`, `wrench.csv` with a
+`contact` column); `--render N` runs the renderer first, when `../shared/peer/raycast_sensor.py`
+sits beside the checkout. Every frame is inverted cold with the nominal Mid design as the
+renderer describes it (line gratings, duty 0.5) and no calibration; the no-contact frames
+are the reference. Prints R² per axis over the loaded frames, how many were called "no
+contact", the status counts, the 95% interval coverage, and the time per frame.
+"""
+
+import argparse
+import csv
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import moirejax as mj
+
+
+AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
+PEER = Path(__file__).resolve().parents[2] / "shared" / "peer" / "raycast_sensor.py"
+
+
+def read_peer(folder: Path):
+    rows = list(csv.DictReader(open(folder / "wrench.csv")))
+    frames = np.stack([cv2.imread(str(folder / "frames" / r["frame"]), cv2.IMREAD_UNCHANGED) / 255.0 for r in rows])
+    wrench = np.array([[float(r[a]) for a in AXES] for r in rows])
+    contact = np.array([int(r["contact"]) for r in rows], dtype=bool)
+    return frames, wrench, contact
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, help="a folder written by the peer renderer")
+    parser.add_argument("--render", type=int, default=0, help="render this many loaded frames with the peer first")
+    parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args()
+    if args.data is None:
+        if not args.render or not PEER.exists():
+            parser.error(f"give --data DIR, or --render N with the peer renderer at {PEER}")
+        args.data = Path(tempfile.mkdtemp(prefix="peer-"))
+        subprocess.run(
+            [sys.executable, str(PEER), str(args.data), "--n", str(args.render), "--seed", str(args.seed)], check=True
+        )
+    frames, truth, contact = read_peer(args.data)
+    device = mj.preset("mid", layout="lines", duty1=0.5, duty2=0.5)
+    start = time.perf_counter()
+    inverter = mj.Inverter(device, frames[~contact].mean(axis=0))
+    first = mj.invert_frame(inverter, jnp.asarray(frames[0], jnp.float32))
+    jax.block_until_ready(first.wrench)
+    compile_s = time.perf_counter() - start
+    estimates, seconds = [], []
+    for frame in frames:
+        t = time.perf_counter()
+        e = mj.invert_frame(inverter, jnp.asarray(frame, jnp.float32))
+        jax.block_until_ready(e.wrench)
+        seconds.append(time.perf_counter() - t)
+        estimates.append(jax.device_get(e))
+    wrench = np.stack([e.wrench for e in estimates])
+    sigma = np.stack([e.sigma for e in estimates])
+    status = np.array([int(e.status) for e in estimates])
+    loaded = contact
+    filled = np.nan_to_num(wrench[loaded])
+    y = truth[loaded]
+    r2 = 1 - ((y - filled) ** 2).sum(0) / ((y - y.mean(0)) ** 2).sum(0)
+    coverage = np.mean(np.abs(wrench[loaded] - y) <= 1.96 * sigma[loaded], axis=0)
+    report = {
+        "data": str(args.data),
+        "frames": int(len(frames)),
+        "loaded": int(loaded.sum()),
+        "r2": dict(zip(AXES, np.round(r2, 4).tolist())),
+        "coverage95": dict(zip(AXES, np.round(coverage, 3).tolist())),
+        "loaded_called_no_contact": int(np.sum(status[loaded] == mj.Status.NO_CONTACT)),
+        "status_counts": {mj.Status(s).name.lower(): int(np.sum(status == s)) for s in np.unique(status)},
+        "median_ms": float(np.median(seconds) * 1e3),
+        "p90_ms": float(np.percentile(seconds, 90) * 1e3),
+        "frames_per_s": float(1 / np.median(seconds)),
+        "compile_s": compile_s,
+        "peak_memory_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+    }
+    print(json.dumps(report, indent=None if args.json else 1))
+
+
+if __name__ == "__main__":
+    main()
