@@ -47,6 +47,9 @@ def main():
     parser.add_argument("--render", type=int, default=0, help="render this many loaded frames with the peer first")
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--json", action="store_true")
+    parser.add_argument(
+        "--per-frame", type=Path, help="also write each frame's truth, estimate, sigma and status (CSV)"
+    )
     args = parser.parse_args()
     if args.data is None:
         if not args.render or not PEER.exists():
@@ -91,6 +94,12 @@ def main():
         "compile_s": compile_s,
         "peak_memory_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
     }
+    if args.per_frame:
+        with open(args.per_frame, "w", newline="") as f:
+            out = csv.writer(f)
+            out.writerow(["frame", "status", *(f"true_{a}" for a in AXES), *AXES, *(f"sigma_{a}" for a in AXES)])
+            for i in range(len(frames)):
+                out.writerow([i, mj.Status(status[i]).name.lower(), *truth[i], *wrench[i], *sigma[i]])
     print(json.dumps(report, indent=None if args.json else 1))
 
 

@@ -87,6 +87,7 @@ from ._observables import (
     frame_summary as frame_summary,
     fringe_observables as fringe_observables,
     FringeFields as FringeFields,
+    white_noise_variance as white_noise_variance,
 )
 from ._pixel_fit import PixelFit as PixelFit, refine_in_pixels as refine_in_pixels
 from ._reference import match_reference_geometry as match_reference_geometry

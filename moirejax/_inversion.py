@@ -24,6 +24,12 @@ observed reference brightness.
 the log contact radius and the log exposure. Two weak priors make the problem well posed
 at light load: the centre of pressure stays near the contact centre (a pressure tilt
 is allowed but costs), and the radius stays near a typical indenter.
+
+**Contact** is decided from the data, not from the fit: a frame is in contact when its
+fringe phase has moved from the reference by more than the frame's and the reference's
+pixel noise put there, somewhere on the frame ([`Inverter.phase_change`][]). Exposure,
+illumination and the fringes' contrast do not move the phase, and a load the model
+explains badly still moves it, so such a load is never reported as no contact.
 """
 
 import enum
@@ -45,7 +51,7 @@ from ._band_model import band_model, BandModel, complex_ratio, predicted_bands
 from ._contact import Contact, NMM_PER_NM
 from ._device import Device
 from ._observability import stray_beat_clearance
-from ._observables import BAND_FRACTION, Demodulator, FringeFields
+from ._observables import BAND_FRACTION, Demodulator, FringeFields, white_noise_variance
 from ._reference import match_reference_geometry
 
 
@@ -58,6 +64,8 @@ _TILT_PRIOR_NMM = 0.8
 _RADIUS_PRIOR = (math.log(3.5), 0.6)
 # A cold solve whose cost is above this fraction of the zero-load cost tries more starts.
 _UNEXPLAINED = 0.004
+# Window (mm, Gaussian sd) over which the phase change is averaged to detect a contact.
+_CONTACT_WINDOW = 2.0
 
 
 class Status(enum.IntEnum):
@@ -176,8 +184,9 @@ class Inverter(eqx.Module):
       environment sets `MOIREJAX_MODEL_GRID`.
     - `band_fraction`: band radius over |K| of the demodulator.
     - `max_steps`, `rtol`, `atol`: Levenberg–Marquardt settings.
-    - `contact_threshold`: how many times more than noise alone the fit must explain,
-      against zero load, for a frame to count as in contact.
+    - `contact_threshold`: how many times its noise level the fringe phase must move, in a
+      window somewhere on the frame, for the frame to count as in contact
+      ([`Inverter.phase_change`][]).
     """
 
     device: Device
@@ -190,6 +199,8 @@ class Inverter(eqx.Module):
     noise_residuals: Float[Array, "samples n"]
     noise_power: Float[Array, ""]
     glow_per_newton: Float[Array, ""]
+    unit_phase_noise: Float[Array, "families m n"]
+    reference_noise: Float[Array, ""]
     model_shape: tuple[int, int] = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
     rtol: float = eqx.field(static=True)
@@ -209,7 +220,7 @@ class Inverter(eqx.Module):
         max_steps: int = 40,
         rtol: float = 1e-5,
         atol: float = 1e-5,
-        contact_threshold: float = 8.0,
+        contact_threshold: float = 10.0,
         match_reference: bool = True,
         chord_steps: int = 4,
         chord_tolerance: float = 0.25,
@@ -285,6 +296,16 @@ class Inverter(eqx.Module):
         press = zero.at[2].set(1.0 / WRENCH_SCALE[2])
         excess = self._predict_now(press, None).brightness - self._predict_now(zero, None).brightness
         self.glow_per_newton = jnp.sum(excess * self.brightness_weight)
+        # The phase noise of a frame against the reference at each coarse-grid point, per unit
+        # of white pixel variance: the part of the unit-noise fringe residual across the
+        # fringe phasor (half of it). A frame's own pixel variance and the reference's
+        # ([`white_noise_variance`][]) scale it.
+        families, m, n = self.fringe_weight.shape
+        unit_fringe = self.noise_residuals[:, : 2 * families * m * n].reshape(-1, 2, families, m, n)
+        self.unit_phase_noise = 0.5 * jnp.mean(jnp.sum(unit_fringe**2, axis=1), axis=0)
+        self.reference_noise = (
+            jnp.zeros((), zero.dtype) if reference is None else white_noise_variance(jnp.asarray(reference, zero.dtype))
+        )
 
     def _predict_now(self, y, reference_wavevector) -> FringeFields:
         # The constructor's predictions, compiled as one program: run op by op, each of the
@@ -348,6 +369,55 @@ class Inverter(eqx.Module):
         fringe = (observed.fringe - self.reference.fringe) * self.fringe_weight.astype(observed.fringe.dtype)
         brightness = (observed.brightness - self.reference.brightness) * self.brightness_weight
         return jnp.concatenate([fringe.real.ravel(), fringe.imag.ravel(), brightness.ravel()])
+
+    def _phase_change_map(self, observed: FringeFields) -> Float[Array, "families m n"]:
+        r"""Energy of the fringe phase change against the reference at each coarse-grid
+        point: $w^2 |f - |f|\,f_\text{ref}/|f_\text{ref}||^2$, which a change of the fringes'
+        amplitude alone (exposure, illumination, the scene behind the sensor) leaves at zero."""
+        reference = self.reference.fringe
+        unit = reference * jax.lax.rsqrt(reference.real**2 + reference.imag**2 + 1e-24).astype(reference.dtype)
+        change = (observed.fringe - jnp.abs(observed.fringe).astype(unit.dtype) * unit) * self.fringe_weight.astype(
+            unit.dtype
+        )
+        return change.real**2 + change.imag**2
+
+    def _phase_noise_floor(self, screen: "_Screen") -> Float[Array, "families m n"]:
+        """Expected phase-change energy at each coarse-grid point from the frame's and the
+        reference's white pixel noise alone (a noise-free frame against a noise-free
+        reference has none; the floor then only keeps the ratio finite)."""
+        variance = screen.noise_variance + self.reference_noise
+        return jnp.maximum(variance * self.unit_phase_noise, jnp.finfo(self.unit_phase_noise.dtype).tiny * 1e6)
+
+    def _quiet_mask(self) -> Bool[Array, "m n"]:
+        # The inner field, where the apodization leaves the fringes their full weight.
+        return self.fringe_weight[0] > 0.5 * jnp.max(self.fringe_weight[0])
+
+    def _phase_change_statistic(self, observed: FringeFields, screen: "_Screen") -> Float[Array, ""]:
+        energy = self._phase_change_map(observed) / self._phase_noise_floor(screen)
+        x, _ = self.demodulator.coarse_grid()
+        weight = self._quiet_mask()
+        normalised = jnp.mean(energy, axis=0)
+        # Separable Gaussian window on the coarse grid (same spacing both ways).
+        offsets = jnp.arange(x.shape[1], dtype=energy.dtype) * (x[0, 1] - x[0, 0])
+        kernel = jnp.exp(-0.5 * ((offsets[:, None] - offsets[None, :]) / _CONTACT_WINDOW) ** 2).astype(energy.dtype)
+        local = kernel @ jnp.where(weight, normalised, 0.0) @ kernel.T
+        coverage = kernel @ weight.astype(energy.dtype) @ kernel.T
+        ratio = local / jnp.maximum(coverage, 1e-30)
+        return jnp.max(jnp.where(coverage > 0.5 * jnp.max(coverage), ratio, 0.0))
+
+    def phase_change(self, frame: Float[Array, "h w"]) -> Float[Array, ""]:
+        """How far the fringe phase of `frame` has moved from the reference, in units of its noise.
+
+        The phase-change energy at each point of the coarse grid, over what the frame's and
+        the reference's pixel noise put there ([`white_noise_variance`][]), averaged in a
+        Gaussian window (`_CONTACT_WINDOW` mm) around every point; this is the largest window
+        average. About one without contact, whatever the illumination or exposure; a
+        contact raises it where its fringes move. The contact gate compares it with
+        `contact_threshold`: contact is decided from the data, not from how well a model
+        fits, so a load the model explains badly is never reported as no contact.
+        """
+        screen, observed, _, _ = self._prepare(frame)
+        return self._phase_change_statistic(observed, screen)
 
     def initial_guess(self, observed: FringeFields) -> Float[Array, "10"]:
         """A cold start from the brightness excess: its centroid places the contact, its
@@ -420,7 +490,12 @@ class Inverter(eqx.Module):
         # Exposure checks on every 4th pixel each way: a sixteenth of the memory traffic,
         # and a fraction of saturated pixels estimated to within 1%.
         sample = frame[::4, ::4]
-        screen = _Screen(finite=finite, dark=jnp.max(sample) < 0.02, saturated=jnp.mean(sample >= 0.995) > 0.5)
+        screen = _Screen(
+            finite=finite,
+            dark=jnp.max(sample) < 0.02,
+            saturated=jnp.mean(sample >= 0.995) > 0.5,
+            noise_variance=jnp.where(finite, white_noise_variance(jnp.where(jnp.isfinite(frame), frame, 0.0)), 0.0),
+        )
         r_zero = self._zero_residuals(observed)
         # Robust noise level: the median absolute whitened residual of zero load (most of
         # the field is outside any contact), scaled to a Gaussian sigma. Every fourth value
@@ -602,11 +677,8 @@ class Inverter(eqx.Module):
         covariance = cov_y[:6, :6] * scale[:, None] * scale[None, :]
         y_out = y if pending is None else y + pending
         wrench, contact, exposure = _unpack(y_out)
-        # Contact test: does the fit explain significantly more than zero load? Noise alone
-        # would make the fit explain `explained_noise` of the zero-load residual.
-        explained_noise = variance * explained
-        f_stat = (jnp.sum(r_zero**2) - jnp.sum(r_data**2)) / jnp.maximum(explained_noise, 1e-30)
-        in_contact = f_stat > self.contact_threshold
+        # Contact from the data: has the fringe phase moved beyond its noise somewhere?
+        in_contact = self._phase_change_statistic(observed, screen) > self.contact_threshold
         status = _status(result, screen, observed, self.reference, in_contact, y)
         ok = (status == Status.CONVERGED) | (status == Status.MAX_STEPS)
         nan6 = jnp.full(6, jnp.nan, dtype)
@@ -759,11 +831,13 @@ class Track(eqx.Module):
 
 
 class _Screen(eqx.Module):
-    """What a frame shows before any solve: finite pixels, too dark, mostly saturated."""
+    """What a frame shows before any solve: finite pixels, too dark, mostly saturated, and
+    the variance of its white pixel noise."""
 
     finite: Bool[Array, ""]
     dark: Bool[Array, ""]
     saturated: Bool[Array, ""]
+    noise_variance: Float[Array, ""]
 
 
 def _median(values: Float[Array, " n"]) -> Float[Array, ""]:

@@ -1080,6 +1080,25 @@ def frame_summary(
     )
 
 
+def white_noise_variance(frame: Float[Array, "h w"]) -> Float[Array, ""]:
+    r"""Variance of the white part of a frame's pixel noise, estimated from the frame alone.
+
+    Camera noise (shot, read, quantisation) spreads evenly over the frame's spectrum, while
+    the gratings, their moiré and the brightness occupy a few lines and points of it. So
+    the median power over the spectrum of the Hann-tapered frame (every third bin each way)
+    is the noise's: for white noise of variance $\sigma^2$ each bin's power is exponential
+    with mean $\sigma^2 \sum_x h(x)^2$, whose median is $\ln 2$ of that. The taper keeps the
+    leakage of the strong lines to a few bins. Where shot noise varies across the frame this
+    is the taper-weighted mean variance, which favours the brighter centre.
+    """
+    h, w = frame.shape
+    dtype = frame.dtype
+    taper = jnp.outer(jnp.hanning(h), jnp.hanning(w)).astype(dtype)
+    spectrum = jnp.fft.rfft2((frame - jnp.mean(frame)) * taper)[::3, ::3]
+    power = spectrum.real**2 + spectrum.imag**2
+    return jnp.median(power) / (math.log(2) * jnp.sum(taper**2))
+
+
 class NumpyDemodulator:
     """Plain numpy/OpenCV implementation of [`moirejax.Demodulator`][]: the latency floor.
 

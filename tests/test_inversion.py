@@ -3,6 +3,7 @@ import subprocess
 import sys
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -252,3 +253,29 @@ print("split")
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
     result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0 and "split" in result.stdout, result.stderr
+
+
+def test_contact_gate_reads_the_fringe_phase_not_the_brightness(mid):
+    # Noisy frames of one unit: an exposure change of an unloaded frame moves the brightness
+    # and the fringe amplitude, not the phase, so it is no contact; a light press is contact.
+    key = jax.random.PRNGKey(7)
+
+    def frame(seed, wrench, exposure=1.0):
+        return mj.render_frame_high(
+            jax.random.PRNGKey(seed),
+            mid,
+            jnp.asarray(wrench),
+            Contact(1.0, -1.0, 3.0),
+            exposure=exposure,
+            fabrication_key=key,
+        )
+
+    zero = np.zeros(6)
+    inverter = Inverter(mid, reference=np.stack([np.asarray(frame(k, zero)) for k in range(3)]).mean(axis=0))
+    phase_change = eqx.filter_jit(lambda inv, f: inv.phase_change(f))
+    quiet = [float(phase_change(inverter, frame(10 + k, zero, exposure))) for k, exposure in enumerate((1.0, 0.7, 1.3))]
+    assert max(quiet) < inverter.contact_threshold / 2, quiet
+    pressed = frame(20, [0.0, 0.0, 0.1, 0.0, 0.0, 0.0])
+    assert float(phase_change(inverter, pressed)) > 4 * inverter.contact_threshold
+    assert Status(int(invert_frame(inverter, frame(21, zero, 0.7)).status)) == Status.NO_CONTACT
+    assert Status(int(invert_frame(inverter, pressed).status)) != Status.NO_CONTACT

@@ -419,3 +419,24 @@ def test_unapodized_option(coarse):
     assert np.abs(interior(wrapped(np.angle(np.asarray(fields.fringe[0])) - expected), 4)).max() < 1e-2
     fringe_np, _, _ = NumpyDemodulator(plain, np.float64)(frame)
     np.testing.assert_allclose(fringe_np, fields.fringe, rtol=1e-9, atol=1e-12)
+
+
+def test_white_noise_variance_reads_the_camera_noise_under_the_gratings():
+    # Two gratings with their first harmonics, multiplied (carriers, moire and mixed beats:
+    # strong spectral lines), under vignetting, plus white noise of known variance: the
+    # estimate sees the noise, not the pattern.
+    import moirejax as mj
+
+    rng = np.random.default_rng(5)
+    h = w = 256
+    y, x = np.mgrid[0:h, 0:w] / 16.0
+
+    def grating(u):
+        return 0.5 + 0.4 * np.cos(2 * np.pi * u) - 0.13 * np.cos(6 * np.pi * u)
+
+    pattern = grating(x / 0.3) * grating((x + y) / 0.35) * (1 - 0.3 * ((x - 8) ** 2 + (y - 8) ** 2) / 64)
+    for sigma in (0.003, 0.02):
+        frame = jnp.asarray(pattern + rng.normal(0, sigma, pattern.shape))
+        assert abs(float(mj.white_noise_variance(frame)) / sigma**2 - 1) < 0.15
+    # Without noise, what is left is leakage of the pattern: far below any camera's noise.
+    assert float(mj.white_noise_variance(jnp.asarray(pattern))) < 1e-7
