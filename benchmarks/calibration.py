@@ -26,8 +26,7 @@ from pathlib import Path
 import numpy as np
 
 import moirejax as mj
-from moirejax._simulate import simulate_dataset
-from moirejax._workflows import calibrate, evaluate, heldout_ridge_r2, transfer
+from moirejax import calibrate, evaluate, heldout_ridge_r2, simulate_dataset, transfer
 
 
 def _rounded(metrics: dict, keys=("r2", "mae", "coverage95")) -> dict:

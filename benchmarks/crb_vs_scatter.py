@@ -38,11 +38,18 @@ import jax.numpy as jnp
 import numpy as np
 
 import moirejax as mj
-from moirejax._contact import Contact
-from moirejax._inversion import initial_state, invert_frame, Inverter, WRENCH_SCALE
-from moirejax._observability import cramer_rao, nominal_load
-from moirejax._pixel_fit import refine_in_pixels
-from moirejax._render import camera_noise, HighFidelity, render_frame
+from moirejax import (
+    axis_ranges,
+    camera_noise,
+    Contact,
+    cramer_rao,
+    HighFidelity,
+    invert_frame,
+    Inverter,
+    nominal_load,
+    refine_in_pixels,
+    render_frame,
+)
 
 
 AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
@@ -113,8 +120,10 @@ def main(argv=None):
 
     # The noise-free frame fitted from the truth: a check that the fit reproduces its own
     # model (zero bias), and the bound with the exposure estimated too, as the fit does.
-    truth_state = initial_state(float(contact.x0), float(contact.y0), float(contact.radius), np.float32)
-    truth_state = truth_state.at[:6].set(wrench / jnp.asarray(WRENCH_SCALE, wrench.dtype))
+    # The fit's ten unknowns (`Estimate.state`): the wrench over the paper's ranges, the
+    # contact centre, the log radius and the log exposure.
+    latents = jnp.stack([contact.x0, contact.y0, jnp.log(contact.radius), jnp.zeros_like(contact.radius)])
+    truth_state = jnp.concatenate([wrench / axis_ranges(wrench.dtype), latents.astype(wrench.dtype)])
     exact = refine(clean, truth_state)
     crb_exposure = np.asarray(exact.sigma, np.float64)
     # Compile both estimators before timing them.

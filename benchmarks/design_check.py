@@ -41,13 +41,23 @@ import jax.numpy as jnp
 import numpy as np
 
 import moirejax as mj
-from moirejax._contact import Contact, WRENCH_AXES
-from moirejax._inversion import invert_frame, Inverter
-from moirejax._observability import axis_ranges, cramer_rao, nominal_load, optimise_design
-from moirejax._optics import binary_harmonics, gaussian_mtf
-from moirejax._pixel_fit import refine_in_pixels
-from moirejax._render import camera_noise, HighFidelity, render_frame
-from moirejax._simulate import load_schedule
+from moirejax import (
+    axis_ranges,
+    binary_harmonics,
+    camera_noise,
+    Contact,
+    cramer_rao,
+    gaussian_mtf,
+    HighFidelity,
+    invert_frame,
+    Inverter,
+    load_schedule,
+    nominal_load,
+    optimise_design,
+    refine_in_pixels,
+    render_frame,
+    WRENCH_AXES,
+)
 
 
 RANGES = np.asarray(axis_ranges(), np.float64)
@@ -82,7 +92,7 @@ def _statuses(statuses) -> dict[str, int]:
 def _bands(design, orders: int = 6) -> dict:
     """The design's moiré band and the mixed-order beats n k1' - m k2 (n != m) that fall in a band.
 
-    The inversion's band model (`moirejax._band_model`) keeps only the same-order beats
+    The inversion's band model (`mj.band_model`) keeps only the same-order beats
     n (k1' - k2) below the carriers; a mixed-order beat inside the fringe band (within
     `BAND_FRACTION` |K| of +-K) or the brightness band (within it of 0) is a fringe the model
     lacks, whose phase moves n times as fast as the fundamental's. Amplitudes are relative

@@ -20,11 +20,8 @@ from pathlib import Path
 import numpy as np
 
 import moirejax as mj
-from moirejax._dataset import Dataset
-from moirejax._inversion import Inverter
-from moirejax._simulate import simulate_dataset
-from moirejax.live import FileSink, make_tactile_processor, run_live
-from moirejax.live._run import capture_reference, open_source
+from moirejax import Dataset, Inverter, simulate_dataset
+from moirejax.live import capture_reference, FileSink, make_tactile_processor, open_source, run_live
 
 
 def _switch_lags(records, contact) -> dict:

@@ -4,19 +4,35 @@ import importlib.metadata
 
 from ._band_model import band_model as band_model, BandModel as BandModel, predicted_bands as predicted_bands
 from ._calibration import (
+    CalibrationResult as CalibrationResult,
     fit_physical_parameters as fit_physical_parameters,
     load_recipe as load_recipe,
     Recipe as Recipe,
 )
-from ._contact import Contact as Contact, surface_grid as surface_grid, surface_tractions as surface_tractions
+from ._contact import (
+    Contact as Contact,
+    surface_grid as surface_grid,
+    surface_tractions as surface_tractions,
+    SurfaceGrid as SurfaceGrid,
+    traction_resultant as traction_resultant,
+    WRENCH_AXES as WRENCH_AXES,
+    WRENCH_UNITS as WRENCH_UNITS,
+)
 from ._dataset import (
+    Batch as Batch,
     Dataset as Dataset,
     DatasetWriter as DatasetWriter,
     export_recording as export_recording,
     import_recording as import_recording,
+    ImportReport as ImportReport,
     open_dataset as open_dataset,
+    WRENCH_CONVENTION as WRENCH_CONVENTION,
 )
-from ._design import design_table as design_table, plot_design_maps as plot_design_maps
+from ._design import (
+    design_table as design_table,
+    format_design_table as format_design_table,
+    plot_design_maps as plot_design_maps,
+)
 from ._device import (
     Device as Device,
     device_from_json as device_from_json,
@@ -72,38 +88,63 @@ from ._inversion import (
     Track as Track,
     track_frame as track_frame,
 )
-from ._metrics import wrench_metrics as wrench_metrics
+from ._metrics import format_metrics as format_metrics, wrench_metrics as wrench_metrics
 from ._observability import (
+    axis_ranges as axis_ranges,
     band_weight as band_weight,
     cramer_rao as cramer_rao,
     fisher_information as fisher_information,
     force_sensitivity as force_sensitivity,
+    nominal_load as nominal_load,
     observability_table as observability_table,
     optimise_design as optimise_design,
+    pixel_noise_variance as pixel_noise_variance,
+    plot_observability as plot_observability,
+    reduced_device as reduced_device,
     stray_beat_clearance as stray_beat_clearance,
+    surface_phase_shift as surface_phase_shift,
 )
 from ._observables import (
+    brightness_baseline as brightness_baseline,
+    BrightnessBaseline as BrightnessBaseline,
     Demodulator as Demodulator,
     frame_summary as frame_summary,
+    FrameSummary as FrameSummary,
     fringe_observables as fringe_observables,
     FringeFields as FringeFields,
+    FringeObservables as FringeObservables,
+    NumpyDemodulator as NumpyDemodulator,
+    RealBandPass as RealBandPass,
     white_noise_variance as white_noise_variance,
 )
+from ._optics import binary_harmonics as binary_harmonics, gaussian_mtf as gaussian_mtf
 from ._pixel_fit import PixelFit as PixelFit, refine_in_pixels as refine_in_pixels
 from ._reference import match_reference_geometry as match_reference_geometry
 from ._render import (
     camera_noise as camera_noise,
     deformation as deformation,
     HighFidelity as HighFidelity,
+    render_deformed as render_deformed,
     render_frame as render_frame,
     render_frame_high as render_frame_high,
 )
 from ._simulate import (
+    Deviations as Deviations,
     load_schedule as load_schedule,
+    LoadSchedule as LoadSchedule,
     perturb_device as perturb_device,
     simulate_dataset as simulate_dataset,
 )
-from ._workflows import calibrate as calibrate, evaluate as evaluate, transfer as transfer
+from ._workflows import (
+    calibrate as calibrate,
+    dataset_reference as dataset_reference,
+    evaluate as evaluate,
+    heldout_ridge_r2 as heldout_ridge_r2,
+    load_calibrated as load_calibrated,
+    ridge_baseline as ridge_baseline,
+    spanning_frames as spanning_frames,
+    transfer as transfer,
+)
 
 
 __version__ = importlib.metadata.version("moirejax")

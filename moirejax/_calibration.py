@@ -18,7 +18,9 @@ variance.
 """
 
 import dataclasses
+import importlib.resources
 import math
+from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +41,7 @@ from ._observables import FringeFields
 
 @dataclasses.dataclass(frozen=True)
 class Recipe:
-    """What a calibration fits and how; the files in `fits/recipes/` hold the named ones.
+    """What a calibration fits and how; the files in `moirejax/fits/recipes/` hold the named ones.
 
     - `name`, `description`: what the recipe is for.
     - `free`: dotted names of [`Device`][] fields to fit.
@@ -92,20 +94,32 @@ class Recipe:
         return cls(**fields)
 
 
-RECIPE_DIR = Path(__file__).resolve().parent / "fits" / "recipes"
+def _named_recipes() -> Traversable:
+    """The folder of the recipes that ship with the package, read through `importlib.resources`
+    so that it is found in a wheel, a zip or a checkout alike."""
+    return importlib.resources.files("moirejax").joinpath("fits", "recipes")
 
 
 def load_recipe(spec: "str | Path | Recipe") -> Recipe:
-    """A [`Recipe`][]: itself, a named one from `fits/recipes/` (`"unit"`, `"transfer"`),
-    or a recipe JSON file (validated against `data_schema/recipe.schema.json`)."""
+    """A [`Recipe`][]: itself, a named one of the package's `moirejax/fits/recipes/`
+    (`"unit"`, `"transfer"`), or a recipe JSON file (validated against
+    `data_schema/recipe.schema.json`)."""
     if isinstance(spec, Recipe):
         return spec
     path = Path(spec)
-    if not path.suffix and (RECIPE_DIR / f"{spec}.json").exists():
-        path = RECIPE_DIR / f"{spec}.json"
+    named = _named_recipes().joinpath(f"{spec}.json")
+    if not path.suffix and named.is_file():
+        with importlib.resources.as_file(named) as file:
+            return _recipe_from_file(file)
     if not path.exists():
-        named = ", ".join(sorted(p.stem for p in RECIPE_DIR.glob("*.json")))
-        raise DataError(f"{spec}: no such recipe file or named recipe (named: {named})")
+        names = ", ".join(
+            sorted(p.name.removesuffix(".json") for p in _named_recipes().iterdir() if p.name.endswith(".json"))
+        )
+        raise DataError(f"{spec}: no such recipe file or named recipe (named: {names})")
+    return _recipe_from_file(path)
+
+
+def _recipe_from_file(path: Path) -> Recipe:
     obj = read_json(path, "recipe")
     try:
         return Recipe.from_json(obj)

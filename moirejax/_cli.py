@@ -339,7 +339,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, metavar="FIT.json", help="fitted device; head and report go beside it")
     p.add_argument("--max-frames", type=int, default=500)
     p.add_argument(
-        "--recipe", default="unit", metavar="NAME|FILE", help="what to fit: a recipe of fits/recipes/ or a JSON file"
+        "--recipe",
+        default="unit",
+        metavar="NAME|FILE",
+        help="what to fit: a named recipe of moirejax/fits/recipes/ or a JSON file",
     )
     p.add_argument("--rounds", type=int, help="alternations of parameter and latent solves (default: the recipe's)")
     p.add_argument("--quiet", action="store_true")

@@ -11,9 +11,9 @@
 import time
 from pathlib import Path
 
+from ._contact import WRENCH_AXES
 from ._design import design_table, format_design_table, plot_design_maps
 from ._device import preset, save_device
-from ._metrics import AXES
 
 
 PAPER_R2 = {"fx": 0.99, "fy": 0.99, "fz": 0.992, "tx": 0.98, "ty": 0.98, "tz": 0.999}
@@ -79,7 +79,7 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     sizes = " / ".join(ridge)
     print(f"\nheld-out mixed loads of the simulated unit (R2 / MAE); ridge: learned baseline on {sizes} frames")
     print("axis   before calibration        after calibration         ridge R2              paper R2")
-    for axis in AXES:
+    for axis in WRENCH_AXES:
         unit = "N" if axis.startswith("f") else "N·m"
         ridge_r2 = " / ".join(f"{r2[axis]:7.3f}" for r2 in ridge.values())
         print(

@@ -4,11 +4,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ._contact import WRENCH_AXES, WRENCH_UNITS
 from ._plotting import pyplot, save_figure
 
 
-AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
-UNITS = ("N", "N", "N", "N·m", "N·m", "N·m")
 # Plots show torques in mN·m: tick labels in N·m (0.0025 steps) run into each other.
 PLOT_SCALE = np.array([1.0, 1.0, 1.0, 1e3, 1e3, 1e3])
 PLOT_UNITS = ("N", "N", "N", "mN·m", "mN·m", "mN·m")
@@ -28,7 +27,7 @@ def wrench_metrics(
     t, e = true[ok], estimate[ok]
     err = e - t
     out: dict = {"r2": {}, "mae": {}, "rmse": {}, "max_error": {}, "coverage95": {}}
-    for j, axis in enumerate(AXES):
+    for j, axis in enumerate(WRENCH_AXES):
         variance = np.sum((t[:, j] - t[:, j].mean()) ** 2)
         out["r2"][axis] = float(1 - np.sum(err[:, j] ** 2) / variance) if variance > 0 else float("nan")
         out["mae"][axis] = float(np.mean(np.abs(err[:, j]))) if len(t) else float("nan")
@@ -48,10 +47,10 @@ def format_metrics(metrics: dict, *, title: str = "") -> str:
     """A per-axis table of [`wrench_metrics`][]."""
     lines = [title] if title else []
     lines.append("axis   unit      R2        MAE        RMSE      max err   cov95")
-    for j, axis in enumerate(AXES):
+    for j, axis in enumerate(WRENCH_AXES):
         cov = metrics.get("coverage95", {}).get(axis, float("nan"))
         lines.append(
-            f"{axis:5s}  {UNITS[j]:5s} {metrics['r2'][axis]:8.4f}  {metrics['mae'][axis]:9.3g}  "
+            f"{axis:5s}  {WRENCH_UNITS[j]:5s} {metrics['r2'][axis]:8.4f}  {metrics['mae'][axis]:9.3g}  "
             f"{metrics['rmse'][axis]:9.3g}  {metrics['max_error'][axis]:9.3g}  {cov:6.3f}"
         )
     lines.append(f"frames: {metrics['n']} evaluated, {metrics['n_failed']} failed")
@@ -74,7 +73,7 @@ def plot_parity(
         pad = 0.05 * (hi - lo + 1e-12)
         ax.plot([lo - pad, hi + pad], [lo - pad, hi + pad], "k--", lw=0.8)
         r2 = 1 - np.sum((e - t) ** 2) / max(np.sum((t - t.mean()) ** 2), 1e-30)
-        ax.set_title(f"{AXES[j]}  R² = {r2:.4f}")
+        ax.set_title(f"{WRENCH_AXES[j]}  R² = {r2:.4f}")
         ax.set_xlabel(f"reference ({PLOT_UNITS[j]})")
         ax.set_ylabel(f"estimate ({PLOT_UNITS[j]})")
     fig.suptitle(title)
@@ -90,8 +89,8 @@ def plot_residuals(path: str | Path, true: np.ndarray, estimate: np.ndarray, *, 
     for j, ax in enumerate(axes.flat):
         err = (estimate[ok, j] - true[ok, j]) * PLOT_SCALE[j]
         ax.hist(err, bins=40, color="C1")
-        axis_title = f"{AXES[j]} error: mean {err.mean():.2g}, sd {err.std():.2g} {PLOT_UNITS[j]}"
-        ax.set_title(axis_title if len(err) else AXES[j])
+        axis_title = f"{WRENCH_AXES[j]} error: mean {err.mean():.2g}, sd {err.std():.2g} {PLOT_UNITS[j]}"
+        ax.set_title(axis_title if len(err) else WRENCH_AXES[j])
         ax.set_xlabel(f"estimate - reference ({PLOT_UNITS[j]})")
     fig.suptitle(title)
     fig.tight_layout()

@@ -57,7 +57,7 @@ $1/R_f$ are smoothed. With 4 mm fringes and the defaults, a 1.5 rad Gaussian pha
 0.035 rad/mm over the central 20 mm; narrower features lose height. A forward model
 compared through [`moirejax.Demodulator.filter_baseband`][] sees the same smoothing.
 
-Conventions follow `docs/CONVENTIONS.md`: x right, y up, origin at the image centre,
+Conventions follow `docs/conventions.md`: x right, y up, origin at the image centre,
 $k_y = -2\pi\,\mathrm{fftfreq}$ along rows; wavevectors are rows `[kx, ky]` in rad/mm.
 """
 

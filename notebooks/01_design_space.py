@@ -41,7 +41,6 @@ import numpy as np
 from IPython.display import display, Markdown
 
 import moirejax as mj
-from moirejax._design import format_design_table  # not exported: the CLI's text table
 
 
 SMOKE = os.environ.get("MOIREJAX_SMOKE") == "1"
@@ -99,7 +98,7 @@ print("paper's A and delta_eff reproduced to the digits it gives")
 # unit must be calibrated rather than trusted to its drawing.
 
 # %%
-print(format_design_table(tables["mid"]))
+print(mj.format_design_table(tables["mid"]))
 dperiod_dp1 = tables["mid"]["dperiod"]["p1"]
 print(
     f"\nMid: a 1 µm error in p1 moves the period by {dperiod_dp1 * 1e-3:.3f} mm "
@@ -155,10 +154,11 @@ plt.show()
 # %% [markdown]
 # ## 3. Period, orientation and amplification over $p_1$, $p_2$ and $\Delta\alpha$
 #
-# Everything in `moirejax._geometry` is a pure JAX function, so whole maps are one call. The white
-# dashed line is $p_1' = p_2$: aligned gratings with equal apparent pitch give no fringes at all.
-# On either side the amplification grows without bound, and the fringe period with it, until a
-# single fringe no longer fits in the field of view.
+# Every moiré geometry function (`mj.moire_period`, `mj.geometric_amplification`, ...) is a pure
+# JAX function, so whole maps are one call. The white dashed line is $p_1' = p_2$: aligned
+# gratings with equal apparent pitch give no fringes at all. On either side the amplification
+# grows without bound, and the fringe period with it, until a single fringe no longer fits in the
+# field of view.
 
 # %%
 pitches = np.linspace(0.15, 0.45, MAP_POINTS)

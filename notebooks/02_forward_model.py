@@ -44,11 +44,6 @@ from IPython.display import display, Markdown
 
 import moirejax as mj
 
-# Not exported from `moirejax`:
-from moirejax._contact import traction_resultant
-from moirejax._observability import surface_phase_shift
-from moirejax._observables import brightness_baseline
-
 
 SMOKE = os.environ.get("MOIREJAX_SMOKE") == "1"
 MECHANICS = (64, 64) if SMOKE else (128, 128)  # elastomer grid (the image is 512 x 512)
@@ -98,7 +93,7 @@ for name, (wr, contact) in loads.items():
 grid = mj.surface_grid(MECHANICS, device.px_per_mm, (h, w), device.a, device.Z)
 tractions = {name: mj.surface_tractions(wr, contact, grid) for name, (wr, contact) in loads.items()}
 for name, (wr, _) in loads.items():
-    resultant = np.asarray(traction_resultant(tractions[name], grid))
+    resultant = np.asarray(mj.traction_resultant(tractions[name], grid))
     print(f"{name:17s} resultant - wrench = {np.abs(resultant - np.asarray(wr)).max():.1e}")
 
 
@@ -300,7 +295,7 @@ plt.show()
 # %%
 shear_wrench, shear_contact = loads["shear"]
 state = states["shear"]
-true_phase = surface_phase_shift(device, state.displacement, state.grid.X, state.grid.Y)
+true_phase = mj.surface_phase_shift(device, state.displacement, state.grid.X, state.grid.Y)
 loaded_fields = demodulator(frames["shear"])
 filtered = demodulator.filter_baseband(jnp.exp(1j * true_phase), loaded_fields.reference_wavevector)
 flat = demodulator.filter_baseband(jnp.ones_like(filtered, shape=true_phase.shape), fields0.reference_wavevector)
@@ -356,7 +351,7 @@ plt.show()
 # millimetres, so the off-centre contact at surface (5, −3) mm appears near (4, −2.4) mm.
 
 # %%
-baseline = brightness_baseline(demodulator, frame0)
+baseline = mj.brightness_baseline(demodulator, frame0)
 summary0 = mj.frame_summary(demodulator, frame0, baseline)
 rows = [
     "| load | Δψ̄ family 0, 1 (rad) | Δ∇ψ̄ family 0 (rad/mm) | peak Δθ family 0 (mdeg) | peak ΔΛ family 0 (µm) "
@@ -391,7 +386,7 @@ display(Markdown("\n".join(rows)))
 # against its own unloaded frame and through the same demodulator.
 
 # %%
-high_baseline = brightness_baseline(demodulator, high0)
+high_baseline = mj.brightness_baseline(demodulator, high0)
 high_observables0 = mj.fringe_observables(demodulator, high_fields0)
 
 

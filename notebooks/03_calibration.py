@@ -49,11 +49,17 @@ import numpy as np
 from IPython.display import display, Image, Markdown
 
 import moirejax as mj
-from moirejax._calibration import load_recipe
-from moirejax._dataset import Dataset
-from moirejax._metrics import AXES, format_metrics, UNITS
-from moirejax._simulate import Deviations, simulate_dataset
-from moirejax._workflows import calibrate, evaluate
+from moirejax import (
+    calibrate,
+    Dataset,
+    Deviations,
+    evaluate,
+    format_metrics,
+    load_recipe,
+    simulate_dataset,
+    WRENCH_AXES,
+    WRENCH_UNITS,
+)
 
 
 SMOKE = os.environ.get("MOIREJAX_SMOKE") == "1"
@@ -242,7 +248,7 @@ tilt = np.round(written["tilt_matrix"], 5).tolist()
 print(f"tilt matrix (Eq. 9, N·m per mm): {tilt}, R² {written['tilt_matrix_r2']:.3f}")
 for n_train, r2 in written["ridge_baseline_r2_crossvalidated"].items():
     # metrics.json writes an undefined value (an axis this session never loads) as null.
-    values = ", ".join(f"{a} {r2[a]:.3f}" if r2[a] is not None else f"{a} undefined" for a in AXES)
+    values = ", ".join(f"{a} {r2[a]:.3f}" if r2[a] is not None else f"{a} undefined" for a in WRENCH_AXES)
     print(f"ridge baseline on {n_train} frames, cross-validated R²: {values}")
 if head_name is not None:
     print(f"residual head training: {written['residual_head']}")
@@ -267,8 +273,8 @@ if head_name is not None:
     columns["calibrated + head"] = after
 header = "| axis | " + " | ".join(f"{c}: R² / MAE" for c in columns) + " |"
 rows = [header, "|---|" + "---|" * len(columns)]
-for j, axis in enumerate(AXES):
-    scale, unit = (1.0, "N") if UNITS[j] == "N" else (1e3, "mN·m")
+for j, axis in enumerate(WRENCH_AXES):
+    scale, unit = (1.0, "N") if WRENCH_UNITS[j] == "N" else (1e3, "mN·m")
     cells = [f"{m['r2'][axis]:.3f} / {scale * m['mae'][axis]:.3g} {unit}" for m in columns.values()]
     rows.append(f"| {axis} | " + " | ".join(cells) + " |")
 rows.append("| frames (failed) | " + " | ".join(f"{m['n']} ({m['n_failed']})" for m in columns.values()) + " |")
@@ -278,8 +284,8 @@ fig, ax = plt.subplots(figsize=(9, 3.5))
 width = 0.8 / len(columns)
 for k, (label, m) in enumerate(columns.items()):
     offset = (k - (len(columns) - 1) / 2) * width
-    ax.bar(np.arange(6) + offset, [max(m["r2"][a], -0.5) for a in AXES], width, label=label)
-ax.set_xticks(np.arange(6), AXES)
+    ax.bar(np.arange(6) + offset, [max(m["r2"][a], -0.5) for a in WRENCH_AXES], width, label=label)
+ax.set_xticks(np.arange(6), WRENCH_AXES)
 ax.axhline(1.0, color="k", lw=0.8)
 ax.set_ylim(-0.5, 1.05)
 ax.set_ylabel("held-out R² (clipped at −0.5)")

@@ -50,11 +50,19 @@ import numpy as np
 from IPython.display import display, Image, Markdown
 
 import moirejax as mj
-from moirejax._calibration import load_recipe
-from moirejax._dataset import Dataset
-from moirejax._metrics import AXES, format_metrics, wrench_metrics
-from moirejax._simulate import simulate_dataset
-from moirejax._workflows import calibrate, dataset_reference, evaluate, ridge_baseline, transfer
+from moirejax import (
+    calibrate,
+    Dataset,
+    dataset_reference,
+    evaluate,
+    format_metrics,
+    load_recipe,
+    ridge_baseline,
+    simulate_dataset,
+    transfer,
+    WRENCH_AXES,
+    wrench_metrics,
+)
 
 
 SMOKE = os.environ.get("MOIREJAX_SMOKE") == "1"
@@ -220,11 +228,11 @@ for k in RIDGE_SIZES:
 # R² of each axis on the same held-out frames (MAE beside it: N for forces, mN·m for torques).
 
 # %%
-header = "| method | " + " | ".join(AXES) + " |"
-rows = [header, "|---|" + "---|" * len(AXES)]
+header = "| method | " + " | ".join(WRENCH_AXES) + " |"
+rows = [header, "|---|" + "---|" * len(WRENCH_AXES)]
 for label, m in results.items():
     cells = []
-    for axis in AXES:
+    for axis in WRENCH_AXES:
         scale, unit = (1.0, "N") if axis.startswith("f") else (1e3, "mN·m")
         cells.append(f"{m['r2'][axis]:.3f} ({scale * m['mae'][axis]:.2g} {unit})")
     rows.append(f"| {label} | " + " | ".join(cells) + " |")
@@ -235,8 +243,8 @@ fig, ax = plt.subplots(figsize=(10, 3.8))
 width = 0.8 / len(results)
 for k, (label, m) in enumerate(results.items()):
     offset = (k - (len(results) - 1) / 2) * width
-    ax.bar(np.arange(6) + offset, [max(m["r2"][a], -0.5) for a in AXES], width, label=label)
-ax.set_xticks(np.arange(6), AXES)
+    ax.bar(np.arange(6) + offset, [max(m["r2"][a], -0.5) for a in WRENCH_AXES], width, label=label)
+ax.set_xticks(np.arange(6), WRENCH_AXES)
 ax.axhline(1.0, color="k", lw=0.8)
 ax.set_ylim(-0.5, 1.05)
 ax.set_ylabel("held-out R² on unit B (clipped at −0.5)")

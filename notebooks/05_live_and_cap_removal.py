@@ -49,7 +49,7 @@ import numpy as np
 from IPython.display import display, Image, Markdown
 
 import moirejax as mj
-from moirejax._metrics import AXES
+from moirejax import WRENCH_AXES
 from moirejax.live import FileSink, format_summary, plot_timeline, run_cap_removal, run_live, SimulatedSensor
 
 
@@ -71,7 +71,7 @@ print(f"working folder {work}")
 # 1 N, a twist under the press, a slide (shear), and the release. It renders `model`-fidelity
 # frames (here with 1% white pixel noise) of the very device the inversion uses, so this is a
 # perfectly calibrated unit; for a real one, pass the calibrated device file
-# (`moirejax._workflows.load_calibrated(fit_json)`) and a camera.
+# (`mj.load_calibrated(fit_json)`) and a camera.
 #
 # The script the sensor will play:
 
@@ -180,7 +180,7 @@ if np.any(in_contact):
     error = estimate[in_contact] - truth[in_contact]
     covered = np.abs(error) <= 1.96 * sigma[in_contact]
     rows = ["| axis | MAE | max error | within 95% interval |", "|---|---|---|---|"]
-    for j, axis in enumerate(AXES):
+    for j, axis in enumerate(WRENCH_AXES):
         scale, unit = (1.0, "N") if axis.startswith("f") else (1e3, "mN·m")
         rows.append(
             f"| {axis} | {scale * np.mean(np.abs(error[:, j])):.3g} {unit} | {scale * np.max(np.abs(error[:, j])):.3g} "

@@ -46,10 +46,7 @@ import numpy as np
 from IPython.display import display, Image, Markdown
 
 import moirejax as mj
-
-# Not exported from `moirejax`:
-from moirejax._contact import WRENCH_AXES
-from moirejax._observability import axis_ranges, nominal_load, plot_observability
+from moirejax import axis_ranges, nominal_load, plot_observability, WRENCH_AXES
 
 
 SMOKE = os.environ.get("MOIREJAX_SMOKE") == "1"

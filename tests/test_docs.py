@@ -3,10 +3,12 @@
 `mkdocs build --strict` (run by `.ci/run`) checks that every cross-reference resolves;
 these tests check what a build cannot: that every public name has a place in the API
 reference, that every JSON Schema has a table on the data-formats page, that nothing links
-outside the repository, and that the Python example of the getting-started page does what
-the page says.
+outside the repository, that the documentation, notebooks and benchmarks use only the
+public names, that the paths and commands the README names exist, and that the Python
+example of the getting-started page does what the page says.
 """
 
+import argparse
 import importlib
 import importlib.resources
 import re
@@ -23,6 +25,27 @@ import moirejax.live
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 API = DOCS / "api"
+README = ROOT / "README.md"
+
+# Everything outside the package that users read or run: the README and changelog, the
+# documentation site (pages and hooks), the notebooks (both halves of each jupytext pair),
+# the README files beside them, the benchmarks, and examples when there are any.
+_OUTSIDE_PATTERNS = (
+    "*.md",
+    "docs/**/*.md",
+    "docs/**/*.py",
+    "fits/**/*.md",
+    "notebooks/*.ipynb",
+    "notebooks/*.py",
+    "notebooks/*.md",
+    "benchmarks/**/*.py",
+    "examples/**/*.py",
+    "examples/**/*.md",
+    "examples/**/*.ipynb",
+)
+# A private module reached from outside: `moirejax._name`, `moirejax.live._name`, `mj._name`
+# (imports, attributes, `::: ` lines of the API pages). Dunders such as `mj.__version__` are public.
+_PRIVATE_MODULE = re.compile(r"\b(?:moirejax|mj)(?:\.[A-Za-z]\w*)*\._(?!_)\w*")
 
 # `::: dotted.path` lines of the API reference pages.
 _DIRECTIVE = re.compile(r"^::: ([\w.]+)$", re.MULTILINE)
@@ -80,14 +103,59 @@ def test_every_schema_has_a_table_on_the_data_formats_page():
     assert names == tabled
 
 
+def _outside_the_package() -> list[Path]:
+    return sorted({path for pattern in _OUTSIDE_PATTERNS for path in ROOT.glob(pattern)})
+
+
+def test_outside_files_are_found():
+    names = {path.relative_to(ROOT).as_posix() for path in _outside_the_package()}
+    assert {"README.md", "docs/index.md", "notebooks/01_design_space.ipynb", "benchmarks/render.py"} <= names
+
+
+def test_nothing_outside_the_package_uses_a_private_module():
+    uses = [
+        f"{path.relative_to(ROOT)}:{line}: {match.group(0)}"
+        for path in _outside_the_package()
+        for line, text in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1)
+        for match in _PRIVATE_MODULE.finditer(text)
+    ]
+    assert not uses, "private modules used outside the package (export the name instead):\n" + "\n".join(uses)
+
+
 def test_nothing_links_outside_the_repository():
-    sources = [ROOT / "mkdocs.yml", *DOCS.rglob("*.md")]
+    # The documents, not the benchmarks: `benchmarks/peer_frames.py --render` runs a renderer
+    # that sits beside the checkout when there is one.
+    documents = [path for path in _outside_the_package() if path.parts[len(ROOT.parts)] != "benchmarks"]
+    sources = [ROOT / "mkdocs.yml", *documents]
     for source in sources:
         text = source.read_text()
         # (udp://host:port sink specs are fine: they are examples, not links.)
         external = re.search(r"(https?|ftp)://|\]\(//|www\.", text)
         assert external is None, f"{source.relative_to(ROOT)} links outside the repository: {external}"
         assert "../shared" not in text and "shared/reference" not in text, f"{source.relative_to(ROOT)}"
+
+
+def test_every_path_the_readme_names_exists():
+    text = README.read_text(encoding="utf-8")
+    # Code spans that are a single path, and link targets, rooted in a folder of the repository
+    # (command lines such as `--out fits/unit.json` name files they would write, not files that exist).
+    spans = re.findall(r"`([^`\s]+)`", text) + re.findall(r"\]\(([^)\s]+)\)", text)
+    paths = [span for span in spans if re.match(r"(docs|moirejax|tests|benchmarks|notebooks|fits)/", span)]
+    paths += re.findall(r"python3? (benchmarks/\S+\.py)", text)
+    assert len(paths) > 10, paths
+    missing = sorted({path for path in paths if not (ROOT / path).exists()})
+    assert not missing, f"README.md names paths that do not exist: {missing}"
+
+
+def test_readme_task_table_has_every_cli_command_once():
+    from moirejax._cli import build_parser
+
+    (subparsers,) = [action for action in build_parser()._actions if isinstance(action, argparse._SubParsersAction)]
+    text = README.read_text(encoding="utf-8")
+    section = text.split("## What you can do", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split("|") for line in section.splitlines() if line.startswith("| ") and "`moirejax " in line]
+    listed = [re.match(r" `moirejax (\S+)", row[2]).group(1) for row in rows]
+    assert sorted(listed) == sorted(subparsers.choices), listed
 
 
 def test_getting_started_example_runs_and_recovers_the_wrench(tmp_path):
