@@ -44,6 +44,7 @@ from moirejax import (
     Contact,
     cramer_rao,
     HighFidelity,
+    initial_state,
     invert_frame,
     Inverter,
     nominal_load,
@@ -120,10 +121,8 @@ def main(argv=None):
 
     # The noise-free frame fitted from the truth: a check that the fit reproduces its own
     # model (zero bias), and the bound with the exposure estimated too, as the fit does.
-    # The fit's ten unknowns (`Estimate.state`): the wrench over the paper's ranges, the
-    # contact centre, the log radius and the log exposure.
-    latents = jnp.stack([contact.x0, contact.y0, jnp.log(contact.radius), jnp.zeros_like(contact.radius)])
-    truth_state = jnp.concatenate([wrench / axis_ranges(wrench.dtype), latents.astype(wrench.dtype)])
+    truth_state = initial_state(float(contact.x0), float(contact.y0), float(contact.radius), np.float32)
+    truth_state = truth_state.at[:6].set(wrench / axis_ranges(wrench.dtype))
     exact = refine(clean, truth_state)
     crb_exposure = np.asarray(exact.sigma, np.float64)
     # Compile both estimators before timing them.

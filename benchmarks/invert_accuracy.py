@@ -28,26 +28,13 @@ import moirejax as mj
 from moirejax import (
     Contact,
     dataset_reference,
-    invert_frame,
+    invert_frames,
     Inverter,
     load_schedule,
     render_frame,
     simulate_dataset,
     wrench_metrics,
 )
-
-
-def _invert_cold(inverter, frames) -> dict[str, np.ndarray]:
-    """Each frame inverted on its own from a cold start: arrays of wrench, sigma, x0, y0, status."""
-    out: dict[str, list] = {k: [] for k in ("wrench", "sigma", "x0", "y0", "status")}
-    for frame in frames:
-        estimate = invert_frame(inverter, jnp.asarray(frame))
-        out["wrench"].append(np.asarray(estimate.wrench))
-        out["sigma"].append(np.asarray(estimate.sigma))
-        out["x0"].append(float(estimate.contact.x0))
-        out["y0"].append(float(estimate.contact.y0))
-        out["status"].append(int(estimate.status))
-    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def _summary(truth, result, schedule=None) -> dict:
@@ -89,17 +76,17 @@ def main(argv=None):
     result = {}
     start = time.perf_counter()
     inverter = Inverter(device, reference=reference, model_shape=grid)
-    result["noise_free"] = _summary(truth, _invert_cold(inverter, clean), sub)
+    result["noise_free"] = _summary(truth, invert_frames(inverter, clean, progress=False), sub)
     reference_noisy = np.mean([noisy(reference) for _ in range(8)], axis=0)
     inverter = Inverter(device, reference=reference_noisy, model_shape=grid)
-    result["noisy"] = _summary(truth, _invert_cold(inverter, [noisy(f) for f in clean]), sub)
+    result["noisy"] = _summary(truth, invert_frames(inverter, [noisy(f) for f in clean], progress=False), sub)
 
     with tempfile.TemporaryDirectory() as tmp:
         data = simulate_dataset(Path(tmp) / "unit", device, "mixed", args.frames + 8, seed=3, progress=False)
         dataset = mj.Dataset(data)
         idx = np.flatnonzero(dataset.contact)[: args.frames]
         inverter = Inverter(device, reference=dataset_reference(dataset), model_shape=grid)
-        inverted = _invert_cold(inverter, [dataset.frame(int(i)) for i in idx])
+        inverted = invert_frames(inverter, [dataset.frame(int(i)) for i in idx], progress=False)
         result["high_fidelity_uncalibrated"] = _summary(dataset.wrenches[idx], inverted)
     result["frames"] = int(len(keep))
     result["model_grid"] = list(inverter.model_shape)

@@ -162,7 +162,9 @@ def default_model_shape(device: Device) -> tuple[int, int]:
 
 
 def initial_state(x0: float = 0.0, y0: float = 0.0, radius: float = 3.5, dtype=float) -> Float[Array, "10"]:
-    """Solver unknowns for zero load at a given contact guess."""
+    """The solver's ten unknowns ([`Estimate.state`][moirejax.Estimate]) at zero load and a
+    contact guess: the wrench over the paper's ranges (six), the contact centre (mm), the
+    log contact radius and the log exposure."""
     return jnp.asarray([0, 0, 0, 0, 0, 0, x0, y0, math.log(radius), 0.0], dtype=dtype)
 
 
