@@ -2,7 +2,12 @@
 
 import importlib.metadata
 
-from ._band_model import band_model as band_model, BandModel as BandModel, predicted_bands as predicted_bands
+from ._band_model import (
+    band_model as band_model,
+    BandModel as BandModel,
+    predicted_bands as predicted_bands,
+    stray_beat_clearance as stray_beat_clearance,
+)
 from ._calibration import (
     CalibrationResult as CalibrationResult,
     fit_physical_parameters as fit_physical_parameters,
@@ -15,7 +20,10 @@ from ._contact import (
     surface_tractions as surface_tractions,
     SurfaceGrid as SurfaceGrid,
     traction_resultant as traction_resultant,
+)
+from ._conventions import (
     WRENCH_AXES as WRENCH_AXES,
+    WRENCH_CONVENTION as WRENCH_CONVENTION,
     WRENCH_UNITS as WRENCH_UNITS,
 )
 from ._dataset import (
@@ -26,7 +34,6 @@ from ._dataset import (
     import_recording as import_recording,
     ImportReport as ImportReport,
     open_dataset as open_dataset,
-    WRENCH_CONVENTION as WRENCH_CONVENTION,
 )
 from ._design import (
     design_table as design_table,
@@ -99,10 +106,8 @@ from ._observability import (
     nominal_load as nominal_load,
     observability_table as observability_table,
     optimise_design as optimise_design,
-    pixel_noise_variance as pixel_noise_variance,
     plot_observability as plot_observability,
     reduced_device as reduced_device,
-    stray_beat_clearance as stray_beat_clearance,
     surface_phase_shift as surface_phase_shift,
 )
 from ._observables import (
@@ -125,6 +130,7 @@ from ._render import (
     camera_noise as camera_noise,
     deformation as deformation,
     HighFidelity as HighFidelity,
+    pixel_noise_variance as pixel_noise_variance,
     render_deformed as render_deformed,
     render_frame as render_frame,
     render_frame_high as render_frame_high,

@@ -21,7 +21,7 @@ from jaxtyping import Array, ArrayLike, Complex, Float
 
 from ._contact import Contact
 from ._device import Device
-from ._observables import Demodulator, FringeFields, RealBandPass
+from ._observables import BAND_FRACTION, Demodulator, FringeFields, RealBandPass
 from ._optics import background_radiance, binary_harmonics, gaussian_mtf, image_coordinates, line_transmission
 from ._render import Mechanics, mechanics, reference_grating_phase, upper_grating_phase
 
@@ -142,3 +142,37 @@ def complex_ratio(
     """`numerator / denominator` with the denominator's magnitude floored (no division by zero)."""
     safe = jnp.where(jnp.abs(denominator) > floor, denominator, floor)
     return numerator / safe
+
+
+def stray_beat_clearance(
+    device: Device, band_fraction: float = BAND_FRACTION, max_order: int | None = None
+) -> Float[Array, " sets"]:
+    r"""How far the gratings' mixed-order beats stay from the demodulated bands, per family.
+
+    Harmonics $n$ of the upper grating and $m$ of the reference beat at
+    $n\mathbf{k}_1' - m\mathbf{k}_2 = n\mathbf{K} + (n - m)\mathbf{k}_2$. For $n \ne m$
+    these are not moiré fringes of the design, and no band model includes them; when the
+    pitch ratio $p_1'/p_2$ is near $(q + 1)/q$ for small $q$, some land on the fringe band
+    ($\pm\mathbf{K}$) or the brightness band (0) and bias the phase there (at
+    $p_1'/p_2 = 4/3$, $3\mathbf{k}_1' - 2\mathbf{k}_2 = -\mathbf{K}$ with a tenth of the
+    fringe's amplitude). Returns, per family, the smallest distance of any such beat
+    ($1 \le n, m \le$ `max_order`, default the device's `harmonics`; binary gratings
+    carry higher orders at a few per cent, the paper's Dense design has one at orders 3
+    and 4) to a band centre over that band's radius (`band_fraction`
+    of $|\mathbf{K}_f|$, of the smallest $|\mathbf{K}|$ for brightness, as the
+    [`Demodulator`][] uses): above 1 the bands are clean.
+    """
+    max_order = device.harmonics if max_order is None else max_order
+    k1 = device.apparent_upper_wavevectors()
+    k2 = device.reference_wavevectors()
+    K = k1 - k2
+    orders = [(n, m) for n in range(1, max_order + 1) for m in range(1, max_order + 1) if n != m]
+    n = jnp.asarray([o[0] for o in orders], K.dtype)[:, None, None]
+    m = jnp.asarray([o[1] for o in orders], K.dtype)[:, None, None]
+    beats = n * k1[None] - m * k2[None]  # (orders, sets, 2)
+    fringe_radius = band_fraction * jnp.linalg.norm(K, axis=-1)
+    brightness_radius = band_fraction * jnp.min(jnp.linalg.norm(K, axis=-1))
+    # A real frame holds every beat with its conjugate, so -K is as bad as K.
+    to_fringe = jnp.minimum(jnp.linalg.norm(beats - K[None], axis=-1), jnp.linalg.norm(beats + K[None], axis=-1))
+    clearance = jnp.minimum(to_fringe / fringe_radius[None], jnp.linalg.norm(beats, axis=-1) / brightness_radius)
+    return jnp.min(clearance, axis=0)

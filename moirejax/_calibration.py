@@ -32,7 +32,8 @@ import numpy as np
 import optimistix as optx
 
 from ._band_model import band_model, BandModel, complex_ratio
-from ._contact import Contact, NMM_PER_NM
+from ._contact import Contact
+from ._conventions import NMM_PER_NM
 from ._device import Device, Elastomer, Optics
 from ._fileio import DataError, read_json
 from ._inversion import Inverter

@@ -20,12 +20,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from ._conventions import NMM_PER_NM
 
-NMM_PER_NM = 1000.0
-WRENCH_AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
-"""The wrench's components in order: forces along x, y, z, then torques about x, y, z."""
-WRENCH_UNITS = ("N", "N", "N", "N·m", "N·m", "N·m")
-"""The unit of each component of [`WRENCH_AXES`][moirejax.WRENCH_AXES]."""
+
 # Sharpness of the smoothed Hertz edge, in units of the normalised gap 1 - rho^2/r^2.
 _EDGE_SHARPNESS = 20.0
 

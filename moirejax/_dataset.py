@@ -30,6 +30,7 @@ import numpy.typing as npt
 from jaxtyping import Bool, Float32, Float64, Int64
 from tqdm import tqdm
 
+from ._conventions import WRENCH_AXES, WRENCH_CONVENTION
 from ._fileio import (
     atomic_write_bytes,
     atomic_write_text,
@@ -42,11 +43,6 @@ from ._fileio import (
 
 FORMAT = "moirejax-dataset"
 VERSION = 1
-WRENCH_CONVENTION = (
-    "x = image columns (right), y = image up, z into the sensor surface (pressing is +Fz), "
-    "origin at the image centre on the contact surface; forces N, torques N*m"
-)
-WRENCH_COLUMNS = ("fx", "fy", "fz", "tx", "ty", "tz")
 MANIFEST_NAME = "manifest.json"
 FRAMES_DIR = "frames"
 WRENCH_NAME = "wrench.csv"
@@ -141,7 +137,7 @@ def _read_wrench_table(path: Path, *, strict: bool) -> _WrenchTable:
     otherwise (a lab recording) unknown columns are ignored and non-finite wrench values are
     kept as NaN/inf for the caller to report per frame.
     """
-    required = ("frame", *WRENCH_COLUMNS)
+    required = ("frame", *WRENCH_AXES)
     with _open_csv(path) as f:
         reader = csv.reader(f)
         header = _read_header(reader, path, required)
@@ -170,7 +166,7 @@ def _read_wrench_table(path: Path, *, strict: bool) -> _WrenchTable:
             first_row_of[name] = row
             frames.append(name)
             rows.append(row)
-            wrenches.append([_parse_number(record[c], where, c, require_finite=strict) for c in WRENCH_COLUMNS])
+            wrenches.append([_parse_number(record[c], where, c, require_finite=strict) for c in WRENCH_AXES])
             if has_t:
                 times.append(_parse_number(record["t"], where, "t", require_finite=True))
             if has_contact:
@@ -471,7 +467,7 @@ class DatasetWriter:
             raise ValueError("no frames were added and frame_shape was not given")
         try:
             has_t, has_contact, latent_keys = self._optional or (False, False, None)
-            header = ["frame", *WRENCH_COLUMNS] + ["t"] * has_t + ["contact"] * has_contact
+            header = ["frame", *WRENCH_AXES] + ["t"] * has_t + ["contact"] * has_contact
             rows = []
             for i, name in enumerate(self._names):
                 row = [name, *map(repr, self._wrenches[i].tolist())]
@@ -890,7 +886,7 @@ def export_recording(
     for i, name in enumerate(dataset.frame_names):
         atomic_write_bytes(frames_dir / name, dataset.frame_path(i).read_bytes())
     t, contact = dataset.t, dataset.contact
-    header = ["frame", *WRENCH_COLUMNS] + ["t"] * (t is not None) + ["contact"] * (contact is not None)
+    header = ["frame", *WRENCH_AXES] + ["t"] * (t is not None) + ["contact"] * (contact is not None)
     rows = []
     for i, name in enumerate(dataset.frame_names):
         row = [name, *map(repr, dataset.wrenches[i].tolist())]

@@ -11,7 +11,7 @@
 import time
 from pathlib import Path
 
-from ._contact import WRENCH_AXES
+from ._conventions import WRENCH_AXES
 from ._design import design_table, format_design_table, plot_design_maps
 from ._device import preset, save_device
 

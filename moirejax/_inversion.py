@@ -47,16 +47,14 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._band_model import band_model, BandModel, complex_ratio, predicted_bands
-from ._contact import Contact, NMM_PER_NM
+from ._band_model import band_model, BandModel, complex_ratio, predicted_bands, stray_beat_clearance
+from ._contact import Contact
+from ._conventions import NMM_PER_NM, WRENCH_SCALE
 from ._device import Device
-from ._observability import stray_beat_clearance
 from ._observables import BAND_FRACTION, Demodulator, FringeFields, white_noise_variance
 from ._reference import match_reference_geometry
 
 
-# Scale of each wrench axis in the solver: the paper's calibrated ranges (N, N*m).
-WRENCH_SCALE = np.array([0.2, 0.2, 1.2, 0.012, 0.012, 0.008])
 N_UNKNOWNS = 10
 # Prior widths: centre-of-pressure offset from the contact centre (N*mm of moment), and
 # log contact radius around 3.5 mm.

@@ -9,15 +9,15 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from ._conventions import WRENCH_AXES
 from ._fileio import atomic_write_text, DataError
 from ._inversion import Estimate, frame_tracker, invert_chunk, Inverter, Status
 
 
-WRENCH_COLUMNS = ("fx", "fy", "fz", "tx", "ty", "tz")
 CSV_HEADER = (
     "frame",
-    *WRENCH_COLUMNS,
-    *(f"sigma_{c}" for c in WRENCH_COLUMNS),
+    *WRENCH_AXES,
+    *(f"sigma_{c}" for c in WRENCH_AXES),
     "x0",
     "y0",
     "radius",

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._contact import WRENCH_AXES, WRENCH_UNITS
+from ._conventions import WRENCH_AXES, WRENCH_UNITS
 from ._plotting import pyplot, save_figure
 
 

@@ -27,7 +27,7 @@ design chosen by the first can put its information in the carriers, where the ba
 inversion does not look; the design search therefore uses the second by default.
 
 Wrenches are `[fx, fy, fz, tx, ty, tz]` in N and N·m; the paper's calibrated ranges
-(`moirejax._simulate.PAPER_RANGES`) scale the axes wherever they are compared.
+(`PAPER_RANGES` in `moirejax/_conventions.py`) scale the axes wherever they are compared.
 """
 
 import dataclasses
@@ -43,11 +43,12 @@ import optax
 from jaxtyping import Array, ArrayLike, Float
 from tqdm.auto import tqdm
 
-from ._contact import Contact, surface_grid, SurfaceGrid, WRENCH_AXES
+from ._band_model import stray_beat_clearance
+from ._contact import Contact, surface_grid, SurfaceGrid
+from ._conventions import WRENCH_AXES, WRENCH_SCALE
 from ._device import Device, PRESET_PITCHES
 from ._observables import BAND_FRACTION, BAND_ROLLOFF, raised_cosine_window
-from ._render import deformation, HighFidelity, render_frame
-from ._simulate import PAPER_RANGES
+from ._render import deformation, HighFidelity, noise_as_arrays, pixel_noise_variance, render_frame
 
 
 LATENT_NAMES = ("x0", "y0", "radius")
@@ -59,7 +60,7 @@ NOMINAL_RADIUS = 3.5
 
 def axis_ranges(dtype=float) -> Float[Array, "6"]:
     """The paper's calibrated range of each wrench axis (N, N·m), in `WRENCH_AXES` order."""
-    return jnp.asarray([PAPER_RANGES[name] for name in WRENCH_AXES], dtype=dtype)
+    return jnp.asarray(WRENCH_SCALE, dtype=dtype)
 
 
 def nominal_load(dtype=float) -> tuple[Float[Array, "6"], Contact]:
@@ -253,18 +254,6 @@ def force_sensitivity(
 # Fisher information and Cramér–Rao bounds.
 
 
-def pixel_noise_variance(frame: Float[Array, "h w"], noise: HighFidelity) -> Float[Array, "h w"]:
-    r"""Variance of each pixel (pixel units, 1 = full well) under the camera noise model.
-
-    Shot noise (variance = electrons), read noise and uniform quantisation to
-    `bit_depth` bits, as `render_frame_high` draws them:
-    $$\sigma^2 = \frac{v N_\mathrm{fw} + \sigma_\mathrm{read}^2}{N_\mathrm{fw}^2} + \frac{1}{12 (2^b - 1)^2}.$$
-    """
-    electrons = jnp.clip(frame, 0.0, 1.0) * noise.full_well
-    levels = 2**noise.bit_depth - 1
-    return (electrons + noise.read_noise**2) / noise.full_well**2 + 1 / (12 * levels**2)
-
-
 def _parameter_scale(dtype) -> Float[Array, "9"]:
     # Wrench axes in units of the paper's ranges, contact latents in mm: a well-conditioned
     # information matrix even in float32.
@@ -347,16 +336,6 @@ def _scaled_information(
 _scaled_information_jit = eqx.filter_jit(_scaled_information)
 
 
-def _as_arrays(noise: HighFidelity | None, dtype) -> HighFidelity:
-    # Floats in a Module are static to filter_jit: arrays avoid a recompile per noise level.
-    noise = HighFidelity() if noise is None else noise
-    return eqx.tree_at(
-        lambda n: (n.full_well, n.read_noise),
-        noise,
-        (jnp.asarray(noise.full_well, dtype), jnp.asarray(noise.read_noise, dtype)),
-    )
-
-
 def fisher_information(
     device: Device,
     wrench: Float[Array, "6"],
@@ -396,7 +375,7 @@ def fisher_information(
     _check_estimator(estimator)
     n = 9 if contact_latents else 6
     scaled = _scaled_information_jit(
-        device, wrench, contact, _as_arrays(noise, wrench.dtype), exposure, mechanics_shape, n, estimator
+        device, wrench, contact, noise_as_arrays(noise, wrench.dtype), exposure, mechanics_shape, n, estimator
     )
     scale = _parameter_scale(wrench.dtype)[:n]
     return scaled / (scale[:, None] * scale[None, :])
@@ -417,7 +396,7 @@ def _worst_axes(relative: np.ndarray) -> str:
 def _bounds(scaled_information: np.ndarray) -> dict[str, Any]:
     """Cramér–Rao bounds from the 9x9 information in range units (numpy, float64)."""
     F = np.asarray(scaled_information, dtype=np.float64)
-    ranges = np.array([PAPER_RANGES[name] for name in WRENCH_AXES])
+    ranges = WRENCH_SCALE
     scale = np.concatenate([ranges, np.ones(3)])
     eigenvalues = np.linalg.eigvalsh(F)
     if not (np.all(np.isfinite(F)) and eigenvalues[0] > 1e-12 * max(eigenvalues[-1], 1e-300)):
@@ -490,7 +469,7 @@ def cramer_rao(
         raise ValueError(f"wrench must have shape (6,), got {wrench.shape}")
     _check_estimator(estimator)
     scaled = _scaled_information_jit(
-        device, wrench, contact, _as_arrays(noise, wrench.dtype), exposure, mechanics_shape, 9, estimator
+        device, wrench, contact, noise_as_arrays(noise, wrench.dtype), exposure, mechanics_shape, 9, estimator
     )
     return _bounds(np.asarray(scaled))
 
@@ -587,7 +566,7 @@ def plot_observability(
 
     _check_estimator(estimator)
     small = reduced_device(device, field_mm)
-    noise = _as_arrays(noise, small.p1.dtype)
+    noise = noise_as_arrays(noise, small.p1.dtype)
     dtype = small.p1.dtype
     grid = np.linspace(*pitches)
     maps = np.full((len(grid), len(grid), 6), np.nan)
@@ -708,40 +687,6 @@ def _relative_crb(device: Device, noise: HighFidelity, mechanics_shape, estimato
     wrench, contact = nominal_load(device.p1.dtype)
     information = _scaled_information(device, wrench, contact, noise, 1.0, mechanics_shape, 9, estimator)
     return jnp.sqrt(jnp.diag(jnp.linalg.inv(information))[:6])
-
-
-def stray_beat_clearance(
-    device: Device, band_fraction: float = BAND_FRACTION, max_order: int | None = None
-) -> Float[Array, " sets"]:
-    r"""How far the gratings' mixed-order beats stay from the demodulated bands, per family.
-
-    Harmonics $n$ of the upper grating and $m$ of the reference beat at
-    $n\mathbf{k}_1' - m\mathbf{k}_2 = n\mathbf{K} + (n - m)\mathbf{k}_2$. For $n \ne m$
-    these are not moiré fringes of the design, and no band model includes them; when the
-    pitch ratio $p_1'/p_2$ is near $(q + 1)/q$ for small $q$, some land on the fringe band
-    ($\pm\mathbf{K}$) or the brightness band (0) and bias the phase there (at
-    $p_1'/p_2 = 4/3$, $3\mathbf{k}_1' - 2\mathbf{k}_2 = -\mathbf{K}$ with a tenth of the
-    fringe's amplitude). Returns, per family, the smallest distance of any such beat
-    ($1 \le n, m \le$ `max_order`, default the device's `harmonics`; binary gratings
-    carry higher orders at a few per cent, the paper's Dense design has one at orders 3
-    and 4) to a band centre over that band's radius (`band_fraction`
-    of $|\mathbf{K}_f|$, of the smallest $|\mathbf{K}|$ for brightness, as the
-    [`Demodulator`][] uses): above 1 the bands are clean.
-    """
-    max_order = device.harmonics if max_order is None else max_order
-    k1 = device.apparent_upper_wavevectors()
-    k2 = device.reference_wavevectors()
-    K = k1 - k2
-    orders = [(n, m) for n in range(1, max_order + 1) for m in range(1, max_order + 1) if n != m]
-    n = jnp.asarray([o[0] for o in orders], K.dtype)[:, None, None]
-    m = jnp.asarray([o[1] for o in orders], K.dtype)[:, None, None]
-    beats = n * k1[None] - m * k2[None]  # (orders, sets, 2)
-    fringe_radius = band_fraction * jnp.linalg.norm(K, axis=-1)
-    brightness_radius = band_fraction * jnp.min(jnp.linalg.norm(K, axis=-1))
-    # A real frame holds every beat with its conjugate, so -K is as bad as K.
-    to_fringe = jnp.minimum(jnp.linalg.norm(beats - K[None], axis=-1), jnp.linalg.norm(beats + K[None], axis=-1))
-    clearance = jnp.minimum(to_fringe / fringe_radius[None], jnp.linalg.norm(beats, axis=-1) / brightness_radius)
-    return jnp.min(clearance, axis=0)
 
 
 # Beats must clear a band by a fifth of its radius more: the band window's taper.
@@ -906,7 +851,7 @@ def optimise_design(
     )
     small = reduced_device(device, field_mm)
     dtype = small.p1.dtype
-    noise_arrays = _as_arrays(noise, dtype)
+    noise_arrays = noise_as_arrays(noise, dtype)
     min_period, max_phase = 1 / max_density, max_phase_range
 
     def loss(z):

@@ -28,10 +28,10 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._contact import Contact
+from ._conventions import WRENCH_SCALE
 from ._device import Device
-from ._inversion import _unpack, Estimate, N_UNKNOWNS, Status, WRENCH_SCALE
-from ._observability import _as_arrays, pixel_noise_variance
-from ._render import HighFidelity, render_frame
+from ._inversion import _unpack, Estimate, N_UNKNOWNS, Status
+from ._render import HighFidelity, noise_as_arrays, pixel_noise_variance, render_frame
 
 
 class PixelFit(eqx.Module):
@@ -150,7 +150,7 @@ def refine_in_pixels(
         raise ValueError(f"frame has shape {frame.shape}, device expects {(device.height, device.width)}")
     dtype = device.p1.dtype
     y0 = state.astype(dtype)
-    args = (frame.astype(dtype), device, _as_arrays(noise, dtype))
+    args = (frame.astype(dtype), device, noise_as_arrays(noise, dtype))
 
     r0, jacobian_t, _ = _linearise(y0, args, mechanics_shape)
     # Unknowns in standard errors (conditional on the others) at the start.

@@ -330,3 +330,28 @@ def camera_noise(key: PRNGKeyArray, clean: Float[Array, "h w"], fidelity: HighFi
     noisy = electrons + jnp.sqrt(electrons + fidelity.read_noise**2) * jr.normal(key, electrons.shape)
     levels = 2**fidelity.bit_depth - 1
     return jnp.clip(jnp.round(noisy / fidelity.full_well * levels), 0, levels) / levels
+
+
+def pixel_noise_variance(frame: Float[Array, "h w"], noise: HighFidelity) -> Float[Array, "h w"]:
+    r"""Variance of each pixel (pixel units, 1 = full well) under the camera noise model.
+
+    Shot noise (variance = electrons), read noise and uniform quantisation to
+    `bit_depth` bits, as `render_frame_high` draws them:
+    $$\sigma^2 = \frac{v N_\mathrm{fw} + \sigma_\mathrm{read}^2}{N_\mathrm{fw}^2} + \frac{1}{12 (2^b - 1)^2}.$$
+    """
+    electrons = jnp.clip(frame, 0.0, 1.0) * noise.full_well
+    levels = 2**noise.bit_depth - 1
+    return (electrons + noise.read_noise**2) / noise.full_well**2 + 1 / (12 * levels**2)
+
+
+def noise_as_arrays(noise: HighFidelity | None, dtype) -> HighFidelity:
+    """`noise` (the defaults for `None`) with its noise levels as arrays of `dtype`.
+
+    Floats in a Module are static to `filter_jit`: arrays avoid a recompile per noise level.
+    """
+    noise = HighFidelity() if noise is None else noise
+    return eqx.tree_at(
+        lambda n: (n.full_well, n.read_noise),
+        noise,
+        (jnp.asarray(noise.full_well, dtype), jnp.asarray(noise.read_noise, dtype)),
+    )

@@ -25,8 +25,6 @@ from ._render import HighFidelity, render_frame, render_frame_high
 
 Protocol = Literal["paper", "mixed", "sequence", "none"]
 PROTOCOLS = ("paper", "mixed", "sequence", "none")
-# The paper's calibrated ranges (Sec. Force/Torque Characterization), N and N*m.
-PAPER_RANGES = {"fx": 0.2, "fy": 0.2, "fz": 1.2, "tx": 0.012, "ty": 0.012, "tz": 0.008}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,10 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._calibration import fit_physical_parameters, load_recipe, Recipe
+from ._conventions import WRENCH_SCALE
 from ._dataset import Dataset
 from ._device import Device, device_from_json, load_device, save_device
 from ._fileio import DataError, read_json, write_json
-from ._inversion import invert_frame, Inverter, Status, WRENCH_SCALE
+from ._inversion import invert_frame, Inverter, Status
 from ._metrics import plot_parity, plot_residuals, wrench_metrics
 from ._residual_head import head_features, load_head, ResidualHead, save_head, train_residual_head
 

@@ -30,9 +30,9 @@ import os
 import numpy as np
 
 from .._contact import Contact
+from .._conventions import PAPER_RANGES
 from .._device import Device
 from .._inversion import Inverter
-from .._simulate import PAPER_RANGES
 from ._run import make_gate, make_tactile_processor, SimulatedSensor
 from ._types import Real
 

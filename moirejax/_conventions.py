@@ -1,0 +1,23 @@
+"""The wrench convention, its axes and units, and the paper's load ranges: the one definition of each.
+
+Every layer that names a wrench axis, converts a torque or scales a wrench by its range
+reads it from here (see `docs/conventions.md`).
+"""
+
+import numpy as np
+
+
+WRENCH_CONVENTION = (
+    "x = image columns (right), y = image up, z into the sensor surface (pressing is +Fz), "
+    "origin at the image centre on the contact surface; forces N, torques N*m"
+)
+WRENCH_AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
+"""The wrench's components in order: forces along x, y, z, then torques about x, y, z."""
+WRENCH_UNITS = ("N", "N", "N", "N·m", "N·m", "N·m")
+"""The unit of each component of [`WRENCH_AXES`][moirejax.WRENCH_AXES]."""
+# Public torques are N·m, the model's are N·mm.
+NMM_PER_NM = 1000.0
+# The paper's calibrated ranges (Sec. Force/Torque Characterization), N and N*m.
+PAPER_RANGES = {"fx": 0.2, "fy": 0.2, "fz": 1.2, "tx": 0.012, "ty": 0.012, "tz": 0.008}
+# Scale of each wrench axis in the solver and the residual head: the ranges in WRENCH_AXES order.
+WRENCH_SCALE = np.array([PAPER_RANGES[name] for name in WRENCH_AXES])
