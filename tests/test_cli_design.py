@@ -3,7 +3,7 @@ import json
 import pytest
 
 import moirejax as mj
-from moirejax._cli import main
+from moirejax.cli._main import main
 
 
 @pytest.mark.parametrize("name, A, d_eff", [("dense", 4.00, 0.25), ("mid", 14.00, 0.10), ("sparse", 24.00, 0.07)])

@@ -4,7 +4,7 @@ import jaxtyping
 import numpy as np
 import pytest
 
-from moirejax._contact import Contact, surface_grid, surface_tractions, traction_resultant
+from moirejax.physics._contact import Contact, surface_grid, surface_tractions, traction_resultant
 
 from .helpers import check_grad_against_fd
 

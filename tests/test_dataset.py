@@ -4,15 +4,15 @@ import cv2
 import numpy as np
 import pytest
 
-from moirejax import _dataset
-from moirejax._dataset import (
+from moirejax._fileio import DataError, load_schema, validate_json
+from moirejax.data import _dataset
+from moirejax.data._dataset import (
     DatasetWriter,
     export_recording,
     import_recording,
     open_dataset,
     WRENCH_CONVENTION,
 )
-from moirejax._fileio import DataError, load_schema, validate_json
 
 
 DEVICE = {"format": "moirejax-device", "version": 1, "p1": 1.0, "p2": 1.05}

@@ -148,7 +148,7 @@ def test_every_path_the_readme_names_exists():
 
 
 def test_readme_task_table_has_every_cli_command_once():
-    from moirejax._cli import build_parser
+    from moirejax.cli._main import build_parser
 
     (subparsers,) = [action for action in build_parser()._actions if isinstance(action, argparse._SubParsersAction)]
     text = README.read_text(encoding="utf-8")

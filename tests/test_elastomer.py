@@ -11,7 +11,7 @@ import jaxtyping
 import numpy as np
 import pytest
 
-from moirejax._elastomer import half_space_compliance, layer_compliance, surface_displacement
+from moirejax.physics._elastomer import half_space_compliance, layer_compliance, surface_displacement
 
 from .helpers import FD_ATOL, FD_RTOL, finite_difference_jvp, tree_allclose
 

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import assume, given, settings, strategies as st
 
 import moirejax as mj
-from moirejax._geometry import (
+from moirejax.physics._geometry import (
     apparent_pitch,
     effective_mismatch_first_order,
     geometric_amplification,

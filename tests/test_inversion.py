@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax._contact import Contact
-from moirejax._inversion import (
+from moirejax._conventions import WRENCH_SCALE
+from moirejax.inverse._inversion import (
     _median,
     invert_batch,
     invert_frame,
@@ -18,10 +18,10 @@ from moirejax._inversion import (
     Inverter,
     Status,
     track_frame,
-    WRENCH_SCALE,
 )
-from moirejax._render import render_frame
-from moirejax._simulate import load_schedule
+from moirejax.physics._contact import Contact
+from moirejax.physics._render import render_frame
+from moirejax.simulate._simulate import load_schedule
 
 
 @pytest.fixture(scope="module")
@@ -241,7 +241,7 @@ def test_batches_are_split_over_the_devices_jax_sees():
     # the whole of this file passes with XLA_FLAGS=--xla_force_host_platform_device_count=2.)
     code = """
 import jax, jax.numpy as jnp
-from moirejax._inversion import _over_devices
+from moirejax.inverse._inversion import _over_devices
 energy = jax.jit(lambda x: jax.vmap(lambda a: jnp.sum(a**2))(_over_devices(x)))
 x = jnp.arange(24.0).reshape(4, 3, 2)
 out = energy(x)

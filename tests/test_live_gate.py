@@ -136,9 +136,9 @@ def test_device_gate_follows_contact_on_a_sequence_dataset(tmp_path):
     device's gate switches within 2 frames of the recorded contact onset and release, and a
     slow illumination drift over the same unit's contact-free frames never switches it."""
     import moirejax as mj
-    from moirejax._dataset import Dataset
-    from moirejax._simulate import simulate_dataset
+    from moirejax.data._dataset import Dataset
     from moirejax.live import make_gate
+    from moirejax.simulate._simulate import simulate_dataset
 
     device = mj.preset("mid")
     data = Dataset(simulate_dataset(tmp_path / "seq", device, "sequence", 120, seed=5, progress=False))

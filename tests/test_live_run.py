@@ -11,10 +11,8 @@ import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax._contact import Contact
 from moirejax._fileio import validate_json
-from moirejax._inversion import Inverter
-from moirejax._simulate import load_schedule
+from moirejax.inverse._inversion import Inverter
 from moirejax.live import (
     capture_reference,
     FileSink,
@@ -29,6 +27,8 @@ from moirejax.live import (
     StreamSink,
     UdpSink,
 )
+from moirejax.physics._contact import Contact
+from moirejax.simulate._simulate import load_schedule
 
 
 @pytest.fixture(scope="module")

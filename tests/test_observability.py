@@ -8,10 +8,8 @@ import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax._contact import Contact
-from moirejax._design import format_design_table
-from moirejax._geometry import moire_orientation
-from moirejax._observability import (
+from moirejax.design._design import format_design_table
+from moirejax.design._observability import (
     _sensitivity_arrays,
     _violations,
     cramer_rao,
@@ -24,7 +22,9 @@ from moirejax._observability import (
     plot_observability,
     reduced_device,
 )
-from moirejax._render import HighFidelity, render_frame
+from moirejax.physics._contact import Contact
+from moirejax.physics._geometry import moire_orientation
+from moirejax.physics._render import HighFidelity, render_frame
 
 from .helpers import camera_variance, finite_difference_jacobian
 

@@ -17,7 +17,7 @@ import pytest
 from skimage.feature import peak_local_max
 from skimage.restoration import unwrap_phase
 
-from moirejax._observables import (
+from moirejax.observe._observables import (
     brightness_baseline,
     demodulate_numpy,
     Demodulator,

@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 import moirejax as mj
-from moirejax._cli import main
+from moirejax.cli._main import main
 
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax._contact import Contact
-from moirejax._inversion import initial_state, WRENCH_SCALE
-from moirejax._observability import fisher_information, pixel_noise_variance
-from moirejax._pixel_fit import refine_in_pixels
-from moirejax._render import HighFidelity, render_frame
+from moirejax._conventions import WRENCH_SCALE
+from moirejax.design._observability import fisher_information
+from moirejax.inverse._inversion import initial_state
+from moirejax.inverse._pixel_fit import refine_in_pixels
+from moirejax.physics._contact import Contact
+from moirejax.physics._render import HighFidelity, pixel_noise_variance, render_frame
 
 from .helpers import camera_variance, finite_difference_jacobian
 

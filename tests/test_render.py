@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax._contact import Contact
-from moirejax._optics import image_coordinates
-from moirejax._render import deformation, render_deformed, render_frame, render_frame_high, upper_grating_phase
+from moirejax.physics._contact import Contact
+from moirejax.physics._optics import image_coordinates
+from moirejax.physics._render import deformation, render_deformed, render_frame, render_frame_high, upper_grating_phase
 
 from .helpers import check_grad_against_fd, spectral_peak, wrap
 

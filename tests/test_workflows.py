@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax._calibration import load_recipe, Recipe
-from moirejax._cli import main
-from moirejax._dataset import Dataset, export_recording
-from moirejax._docs import cli_reference
 from moirejax._fileio import validate_json
-from moirejax._simulate import simulate_dataset
-from moirejax._workflows import calibrate, evaluate, transfer
+from moirejax.calibration._calibration import load_recipe, Recipe
+from moirejax.calibration._workflows import calibrate, evaluate, transfer
+from moirejax.cli._docs import cli_reference
+from moirejax.cli._main import main
+from moirejax.data._dataset import Dataset, export_recording
+from moirejax.simulate._simulate import simulate_dataset
 
 from .helpers import tree_allclose
 
@@ -48,7 +48,7 @@ def test_calibrate_evaluate_transfer(datasets):
         baseline_sizes=(10,),
         progress=False,
     )
-    fitted, head = mj._workflows.load_calibrated(root / "fit.json")
+    fitted, head = mj.calibration._workflows.load_calibrated(root / "fit.json")
     # Too few frames for a residual head: the calibration says so instead of overfitting.
     assert head is None and "skipped" in json.loads((root / "fit_report" / "metrics.json").read_text())["residual_head"]
     obj = json.loads((root / "fit.json").read_text())
@@ -72,7 +72,7 @@ def test_calibrate_evaluate_transfer(datasets):
     transfer(
         root / "fit.json", root / "test", root / "fit_b.json", max_frames=5, recipe=root / "pinned.json", progress=False
     )
-    fitted_b, head_b = mj._workflows.load_calibrated(root / "fit_b.json")
+    fitted_b, head_b = mj.calibration._workflows.load_calibrated(root / "fit_b.json")
     assert head_b is None and fitted_b.layout == fitted.layout
     assert json.loads((root / "fit_b.json").read_text())["calibration"]["recipe"] == "pinned"
     assert float(fitted_b.elastomer.E) == pytest.approx(float(fitted.elastomer.E), rel=1e-3)
@@ -85,10 +85,10 @@ def test_spanning_frames_load_every_axis():
     wrenches[:, 2] = rng.uniform(0.3, 1.2, 60)
     for row, axis, value in ((7, 0, 0.15), (19, 1, -0.18), (33, 5, 0.006), (41, 3, 0.01), (52, 0, -0.12)):
         wrenches[row, axis] = value
-    chosen = mj._workflows.spanning_frames(wrenches, 8)
+    chosen = mj.calibration._workflows.spanning_frames(wrenches, 8)
     assert len(set(chosen.tolist())) == 8 and {7, 19, 33, 41, 52} <= set(chosen.tolist())
     assert int(np.argmax(wrenches[:, 2])) in chosen
-    assert len(mj._workflows.spanning_frames(wrenches[:3], 8)) == 3
+    assert len(mj.calibration._workflows.spanning_frames(wrenches[:3], 8)) == 3
 
 
 def test_named_recipes_round_trip_and_bad_recipes_are_refused(tmp_path):
@@ -117,7 +117,7 @@ def test_interrupted_calibration_leaves_no_device_file(datasets, monkeypatch):
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(mj._workflows, "fit_physical_parameters", interrupt)
+    monkeypatch.setattr(mj.calibration._workflows, "fit_physical_parameters", interrupt)
     with pytest.raises(KeyboardInterrupt):
         calibrate(root / "mid.json", root / "cal", root / "never.json", progress=False)
     assert not (root / "never.json").exists()
@@ -185,7 +185,7 @@ def test_commands_keep_compiled_programs_in_a_cache_folder(tmp_path, setting):
         env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "own")
     if setting == "off":
         env["MOIREJAX_COMPILATION_CACHE"] = "0"
-    code = "import jax; from moirejax._cli import use_compilation_cache as u; print(u(), jax.config.jax_compilation_cache_dir)"
+    code = "import jax; from moirejax.cli._main import use_compilation_cache as u; print(u(), jax.config.jax_compilation_cache_dir)"
     result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     expected = {"default": str(tmp_path / "xdg" / "moirejax" / "jax"), "own": str(tmp_path / "own"), "off": "None"}
@@ -196,14 +196,14 @@ def test_readme_cli_reference_is_current():
     from pathlib import Path
 
     readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
-    assert cli_reference() in readme, "run `python -m moirejax._docs` to regenerate the README's CLI reference"
+    assert cli_reference() in readme, "run `python -m moirejax.cli._docs` to regenerate the README's CLI reference"
 
 
 def test_fitted_preset_in_fits_loads_with_its_head():
     from pathlib import Path
 
     fits = Path(__file__).resolve().parent.parent / "fits"
-    device, head = mj._workflows.load_calibrated(fits / "mid-sim-unit3.json")
+    device, head = mj.calibration._workflows.load_calibrated(fits / "mid-sim-unit3.json")
     assert head is not None and device.layout == mj.preset("mid").layout
     calibration = json.loads((fits / "mid-sim-unit3.json").read_text())["calibration"]
     assert calibration["recipe"] == "unit" and set(calibration["uncertainty"]) == set(load_recipe("unit").free)
@@ -217,7 +217,7 @@ def test_fitted_preset_in_fits_loads_with_its_head():
 
 @pytest.mark.usefixtures("float32")
 def test_demo_runs_end_to_end_in_smoke_mode(tmp_path, capsys):
-    from moirejax._demo import run_demo
+    from moirejax.cli._demo import run_demo
 
     assert run_demo(str(tmp_path / "demo"), smoke=True) == 0
     out = capsys.readouterr().out

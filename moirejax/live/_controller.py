@@ -29,10 +29,9 @@ import os
 
 import numpy as np
 
-from .._contact import Contact
 from .._conventions import PAPER_RANGES
-from .._device import Device
-from .._inversion import Inverter
+from ..inverse import Inverter
+from ..physics import Contact, Device
 from ._run import make_gate, make_tactile_processor, SimulatedSensor
 from ._types import Real
 
@@ -268,7 +267,7 @@ def run_cap_removal(
 
     - `device`: the simulated unit (also the inversion's model).
     - `cycles`: how many press-twist-release cycles.
-    - `inverter`: an [`Inverter`][moirejax._inversion.Inverter] to reuse (default: one
+    - `inverter`: an [`Inverter`][moirejax.inverse._inversion.Inverter] to reuse (default: one
         built on the sensor's rendered no-contact frame).
     - `controller`: the [`CapController`][] settings (target force etc.).
     - `rig`: the plant (default [`CapRig`][] with its defaults: 1 N/mm, 0.006 N·m breakaway).

@@ -3,7 +3,7 @@
 [`run_live`][] builds everything [`run_pipeline`][] needs from a device and a source
 spec: the frame source (a camera index, a video file or URL, a folder of images, or
 `"sim"` for a simulated sensor with no hardware), the no-contact reference of the unit,
-the [`Inverter`][moirejax._inversion.Inverter] wrapped by [`make_tactile_processor`][],
+the [`Inverter`][moirejax.inverse._inversion.Inverter] wrapped by [`make_tactile_processor`][],
 the [`GateER`][] contact gate tuned to the device's moiré wavevectors, and the
 vision-mode colour probe behind a moiré notch filter.
 """
@@ -22,11 +22,10 @@ import cv2
 import jax.random as jr
 import numpy as np
 
-from .._contact import Contact
-from .._device import Device
 from .._fileio import DataError
-from .._inversion import frame_tracker, Inverter, Status
-from .._simulate import load_schedule, LoadSchedule, Simulator
+from ..inverse import frame_tracker, Inverter, Status
+from ..physics import Contact, Device
+from ..simulate import load_schedule, LoadSchedule, Simulator
 from ._camera import (
     AbstractFrameSource,
     CallableSource,
@@ -120,7 +119,7 @@ def make_tactile_processor(inverter: Inverter, warmup_frame: np.ndarray | None =
 
     **Arguments:**
 
-    - `inverter`: the unit's [`Inverter`][moirejax._inversion.Inverter].
+    - `inverter`: the unit's [`Inverter`][moirejax.inverse._inversion.Inverter].
     - `warmup_frame`: a frame of the device's size to compile with (e.g. the reference);
         default a uniform gray frame.
 
@@ -163,7 +162,7 @@ def make_colour_probe(device: Device, *, harmonics: int = 1) -> ColourProbe:
 
 
 def schedule_script(schedule: LoadSchedule) -> LoadScript:
-    """A [`LoadSchedule`][moirejax._simulate.LoadSchedule] as a load script (ends after its last frame)."""
+    """A [`LoadSchedule`][moirejax.simulate._simulate.LoadSchedule] as a load script (ends after its last frame)."""
 
     def script(i: int) -> tuple[np.ndarray, Contact] | None:
         if i >= len(schedule):
@@ -214,7 +213,7 @@ class SimulatedSensor:
     **Arguments:**
 
     - `device`: the simulated unit.
-    - `script`: a [`LoadSchedule`][moirejax._simulate.LoadSchedule], or `fn(i) ->
+    - `script`: a [`LoadSchedule`][moirejax.simulate._simulate.LoadSchedule], or `fn(i) ->
         (wrench, contact) | None` (e.g. a closed-loop rig that returns its current load);
         default `load_schedule("sequence", n_frames, seed)` (approach, press, twist, slide,
         release).
@@ -457,7 +456,7 @@ def run_live(
         frames of the source, which must be untouched when it starts (the source is
         opened once for them and again for the run). With no frame, the model's own
         prediction.
-    - `inverter`: use this [`Inverter`][moirejax._inversion.Inverter] (e.g. one already
+    - `inverter`: use this [`Inverter`][moirejax.inverse._inversion.Inverter] (e.g. one already
         compiled) instead of building one; `reference` is then not used.
     - `sensor`: the simulated sensor for `"sim"` (default: one with the default script).
     - `vision`: in vision mode, name the colour seen through the sensor (colour sources).

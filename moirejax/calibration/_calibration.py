@@ -31,13 +31,11 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from ._band_model import band_model, BandModel, complex_ratio
-from ._contact import Contact
-from ._conventions import NMM_PER_NM
-from ._device import Device, Elastomer, Optics
-from ._fileio import DataError, read_json
-from ._inversion import Inverter
-from ._observables import FringeFields
+from .._conventions import NMM_PER_NM
+from .._fileio import DataError, read_json
+from ..inverse import Inverter
+from ..observe import band_model, BandModel, complex_ratio, FringeFields
+from ..physics import Contact, Device, Elastomer, Optics
 
 
 @dataclasses.dataclass(frozen=True)

@@ -43,12 +43,20 @@ import optax
 from jaxtyping import Array, ArrayLike, Float
 from tqdm.auto import tqdm
 
-from ._band_model import stray_beat_clearance
-from ._contact import Contact, surface_grid, SurfaceGrid
-from ._conventions import WRENCH_AXES, WRENCH_SCALE
-from ._device import Device, PRESET_PITCHES
-from ._observables import BAND_FRACTION, BAND_ROLLOFF, raised_cosine_window
-from ._render import deformation, HighFidelity, noise_as_arrays, pixel_noise_variance, render_frame
+from .._conventions import WRENCH_AXES, WRENCH_SCALE
+from ..observe import BAND_FRACTION, BAND_ROLLOFF, raised_cosine_window, stray_beat_clearance
+from ..physics import (
+    Contact,
+    deformation,
+    Device,
+    HighFidelity,
+    noise_as_arrays,
+    pixel_noise_variance,
+    PRESET_PITCHES,
+    render_frame,
+    surface_grid,
+    SurfaceGrid,
+)
 
 
 LATENT_NAMES = ("x0", "y0", "radius")
@@ -562,7 +570,7 @@ def plot_observability(
     - `estimator`: whose bound to map (see [`fisher_information`][]); by default the band
       inversion's, which `moirejax invert` runs.
     """
-    from ._plotting import pyplot, save_figure
+    from .._plotting import pyplot, save_figure
 
     _check_estimator(estimator)
     small = reduced_device(device, field_mm)

@@ -12,7 +12,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ._device import Device
+from ..physics import Device
 
 
 def measure_moire_wavevectors(frame: np.ndarray, device: Device, search: float = 0.6) -> np.ndarray:

@@ -7,17 +7,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._device import Device, preset, PRESET_PITCHES
-from ._geometry import (
+from .._plotting import pyplot, save_figure
+from ..physics import (
+    Device,
     effective_mismatch_exact,
     effective_mismatch_first_order,
     geometric_amplification,
     moire_orientation,
     moire_period_exact,
     object_mismatch,
+    preset,
+    PRESET_PITCHES,
     shear_amplification,
 )
-from ._plotting import pyplot, save_figure
 
 
 DESIGN_PARAMETERS = ("p1", "p2", "delta_alpha", "a", "Z")

@@ -10,12 +10,12 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+from .._conventions import WRENCH_SCALE
+from .._fileio import DataError, read_json, write_json
+from ..data import Dataset
+from ..inverse import invert_frame, Inverter, Status
+from ..physics import Device, device_from_json, load_device, save_device
 from ._calibration import fit_physical_parameters, load_recipe, Recipe
-from ._conventions import WRENCH_SCALE
-from ._dataset import Dataset
-from ._device import Device, device_from_json, load_device, save_device
-from ._fileio import DataError, read_json, write_json
-from ._inversion import invert_frame, Inverter, Status
 from ._metrics import plot_parity, plot_residuals, wrench_metrics
 from ._residual_head import head_features, load_head, ResidualHead, save_head, train_residual_head
 
@@ -406,7 +406,7 @@ def transfer(
 
 
 def _plot_parameters(path: Path, parameters: list[dict]) -> None:
-    from ._plotting import pyplot, save_figure
+    from .._plotting import pyplot, save_figure
 
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(9, 0.5 + 0.45 * len(parameters)))

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._conventions import NMM_PER_NM
+from .._conventions import NMM_PER_NM
 
 
 # Sharpness of the smoothed Hertz edge, in units of the normalised gap 1 - rho^2/r^2.

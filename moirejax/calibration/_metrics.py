@@ -4,8 +4,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._conventions import WRENCH_AXES, WRENCH_UNITS
-from ._plotting import pyplot, save_figure
+from .._conventions import WRENCH_AXES, WRENCH_UNITS
+from .._plotting import pyplot, save_figure
 
 
 # Plots show torques in mN·m: tick labels in N·m (0.0025 steps) run into each other.

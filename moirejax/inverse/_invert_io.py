@@ -9,8 +9,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ._conventions import WRENCH_AXES
-from ._fileio import atomic_write_text, DataError
+from .._conventions import WRENCH_AXES
+from .._fileio import atomic_write_text, DataError
 from ._inversion import Estimate, frame_tracker, invert_chunk, Inverter, Status
 
 
@@ -36,7 +36,7 @@ def iter_source_frames(
     """
     import cv2
 
-    from ._dataset import Dataset
+    from ..data import Dataset
 
     path = Path(source)
     if (path / "manifest.json").exists():
@@ -86,7 +86,7 @@ def _to_gray(image: np.ndarray) -> np.ndarray:
 def find_reference(source: str | Path, shape: tuple[int, int]) -> tuple[np.ndarray | None, str]:
     """A no-contact reference frame for `source`: the mean of up to 8 frames flagged
     `contact = 0` in a dataset. Returns `(frame or None, description)`."""
-    from ._dataset import Dataset
+    from ..data import Dataset
 
     path = Path(source)
     if not (path / "manifest.json").exists():

@@ -47,12 +47,20 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._band_model import band_model, BandModel, complex_ratio, predicted_bands, stray_beat_clearance
-from ._contact import Contact
-from ._conventions import NMM_PER_NM, WRENCH_SCALE
-from ._device import Device
-from ._observables import BAND_FRACTION, Demodulator, FringeFields, white_noise_variance
-from ._reference import match_reference_geometry
+from .._conventions import NMM_PER_NM, WRENCH_SCALE
+from ..observe import (
+    BAND_FRACTION,
+    band_model,
+    BandModel,
+    complex_ratio,
+    Demodulator,
+    FringeFields,
+    match_reference_geometry,
+    predicted_bands,
+    stray_beat_clearance,
+    white_noise_variance,
+)
+from ..physics import Contact, Device
 
 
 N_UNKNOWNS = 10

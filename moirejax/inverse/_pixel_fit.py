@@ -27,11 +27,9 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._contact import Contact
-from ._conventions import WRENCH_SCALE
-from ._device import Device
+from .._conventions import WRENCH_SCALE
+from ..physics import Contact, Device, HighFidelity, noise_as_arrays, pixel_noise_variance, render_frame
 from ._inversion import _unpack, Estimate, N_UNKNOWNS, Status
-from ._render import HighFidelity, noise_as_arrays, pixel_noise_variance, render_frame
 
 
 class PixelFit(eqx.Module):

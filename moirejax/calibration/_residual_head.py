@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._conventions import WRENCH_SCALE
-from ._fileio import atomic_write_bytes, atomic_write_text
+from .._conventions import WRENCH_SCALE
+from .._fileio import atomic_write_bytes, atomic_write_text
 
 
 N_FEATURES = 9

@@ -11,9 +11,9 @@
 import time
 from pathlib import Path
 
-from ._conventions import WRENCH_AXES
-from ._design import design_table, format_design_table, plot_design_maps
-from ._device import preset, save_device
+from .._conventions import WRENCH_AXES
+from ..design import design_table, format_design_table, plot_design_maps
+from ..physics import preset, save_device
 
 
 PAPER_R2 = {"fx": 0.99, "fy": 0.99, "fz": 0.992, "tx": 0.98, "ty": 0.98, "tz": 0.999}
@@ -21,18 +21,18 @@ PAPER_R2 = {"fx": 0.99, "fy": 0.99, "fz": 0.992, "tx": 0.98, "ty": 0.98, "tz": 0
 
 def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     """Run the demo into folder `out`; `smoke` shrinks every size (for tests)."""
-    from ._calibration import load_recipe
-    from ._dataset import Dataset
-    from ._inversion import Inverter
-    from ._simulate import simulate_dataset
-    from ._workflows import (
+    from ..calibration import (
         calibrate,
         dataset_reference,
         evaluate,
         heldout_ridge_r2,
         invert_frames,
         load_calibrated,
+        load_recipe,
     )
+    from ..data import Dataset
+    from ..inverse import Inverter
+    from ..simulate import simulate_dataset
 
     start = time.perf_counter()
     out_dir = Path(out)

@@ -2,10 +2,10 @@
 
 import argparse
 
-from ._cli import build_parser
+from ._main import build_parser
 
 
-BEGIN = "<!-- cli-reference:begin (generated from the argument parser by moirejax/_docs.py) -->"
+BEGIN = "<!-- cli-reference:begin (generated from the argument parser by moirejax/cli/_docs.py) -->"
 END = "<!-- cli-reference:end -->"
 
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._fileio import read_json, validate_json, write_json
+from .._fileio import read_json, validate_json, write_json
 from ._geometry import apparent_pitch, grating_wavevector
 
 

@@ -723,7 +723,7 @@ class Demodulator(eqx.Module):
           wavevectors if omitted.
         - `dtype`: real precision of the fields (default: JAX's default float).
 
-        **Returns:** a [`RealBandPass`][moirejax._observables.RealBandPass]; call it with the
+        **Returns:** a [`RealBandPass`][moirejax.observe._observables.RealBandPass]; call it with the
         field for `(fringe, brightness)` on the coarse grid.
         """
         rows, cols = (int(n) for n in shape)

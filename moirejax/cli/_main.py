@@ -8,7 +8,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from ._fileio import DataError
+from .._fileio import DataError
 
 
 def _add_device_arguments(parser: argparse.ArgumentParser, *, design_flags: bool = False) -> None:
@@ -32,7 +32,7 @@ def _add_device_arguments(parser: argparse.ArgumentParser, *, design_flags: bool
 
 
 def _device_from_args(args: argparse.Namespace):
-    from ._device import device_from_json, device_to_json, load_device, preset
+    from ..physics import device_from_json, device_to_json, load_device, preset
 
     if getattr(args, "device", None):
         device = load_device(args.device)
@@ -67,21 +67,21 @@ def _device_from_args(args: argparse.Namespace):
 
 
 def _cmd_design(args: argparse.Namespace) -> int:
-    from ._design import design_table, format_design_table, plot_design_maps
-    from ._device import save_device
+    from ..design import design_table, format_design_table, plot_design_maps
+    from ..physics import save_device
 
     device = _device_from_args(args)
     table = design_table(device)
     if args.sensitivity or args.observability or args.optimise:
-        from ._observability import force_sensitivity
+        from ..design import force_sensitivity
 
         table["force_sensitivity"] = force_sensitivity(device)
     if args.observability or args.optimise:
-        from ._observability import observability_table
+        from ..design import observability_table
 
         table["observability"] = observability_table(device)
     if args.optimise:
-        from ._observability import optimise_design
+        from ..design import optimise_design
 
         optimum, report = optimise_design(
             device,
@@ -105,7 +105,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
         plot_design_maps(args.plot, device)
         print(f"wrote design maps {args.plot}", file=sys.stderr)
     if args.observability_plot:
-        from ._observability import plot_observability
+        from ..design import plot_observability
 
         plot_observability(args.observability_plot, device, estimator=args.estimator)
         print(f"wrote observability maps {args.observability_plot}", file=sys.stderr)
@@ -113,7 +113,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from ._simulate import simulate_dataset
+    from ..simulate import simulate_dataset
 
     device = _device_from_args(args)
     out = simulate_dataset(
@@ -125,8 +125,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from ._dataset import import_recording
-    from ._device import load_device
+    from ..data import import_recording
+    from ..physics import load_device
 
     load_device(args.device)  # validate the device before converting thousands of frames
     report = import_recording(
@@ -139,8 +139,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
 def _inverter_for(device, source, reference_path):
     import numpy as np
 
-    from ._inversion import Inverter
-    from ._invert_io import find_reference, load_reference_image
+    from ..inverse import find_reference, Inverter, load_reference_image
 
     shape = (device.height, device.width)
     if reference_path:
@@ -154,8 +153,8 @@ def _inverter_for(device, source, reference_path):
 
 
 def _cmd_invert(args: argparse.Namespace) -> int:
-    from ._invert_io import invert_recording
-    from ._workflows import load_calibrated
+    from ..calibration import load_calibrated
+    from ..inverse import invert_recording
 
     device, head = load_calibrated(args.device)
     inverter = _inverter_for(device, args.data, args.reference)
@@ -165,9 +164,7 @@ def _cmd_invert(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from ._calibration import load_recipe
-    from ._metrics import format_metrics
-    from ._workflows import calibrate
+    from ..calibration import calibrate, format_metrics, load_recipe
 
     recipe = load_recipe(args.recipe)
     if args.rounds is not None:
@@ -194,8 +191,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from ._metrics import format_metrics
-    from ._workflows import evaluate
+    from ..calibration import evaluate, format_metrics
 
     metrics = evaluate(args.device, args.data, args.out, progress=not args.quiet)
     print(format_metrics(metrics, title=f"{args.device} on {args.data}"))
@@ -204,7 +200,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_transfer(args: argparse.Namespace) -> int:
-    from ._workflows import transfer
+    from ..calibration import transfer
 
     summary = transfer(
         args.from_, args.data, args.out, max_frames=args.max_frames, recipe=args.recipe, progress=not args.quiet
@@ -221,8 +217,8 @@ def _cmd_transfer(args: argparse.Namespace) -> int:
 
 
 def _cmd_live(args: argparse.Namespace) -> int:
-    from ._workflows import load_calibrated
-    from .live import format_summary, parse_sink, run_live
+    from ..calibration import load_calibrated
+    from ..live import format_summary, parse_sink, run_live
 
     device, _ = load_calibrated(args.device)
     sinks = [parse_sink(spec) for spec in (args.sink or ["-"])]
@@ -247,12 +243,12 @@ def _cmd_live(args: argparse.Namespace) -> int:
 
 
 def _cmd_cap_removal(args: argparse.Namespace) -> int:
-    from ._workflows import load_calibrated
-    from .live import plot_timeline, run_cap_removal
+    from ..calibration import load_calibrated
+    from ..live import plot_timeline, run_cap_removal
 
     device, _ = load_calibrated(args.device) if args.device else (None, None)
     if device is None:
-        from ._device import preset
+        from ..physics import preset
 
         device = preset("mid")
     timeline = run_cap_removal(device, cycles=args.cycles)

@@ -19,11 +19,20 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float
 
-from ._contact import Contact
-from ._device import Device
+from ..physics import (
+    background_radiance,
+    binary_harmonics,
+    Contact,
+    Device,
+    gaussian_mtf,
+    image_coordinates,
+    line_transmission,
+    Mechanics,
+    mechanics,
+    reference_grating_phase,
+    upper_grating_phase,
+)
 from ._observables import BAND_FRACTION, Demodulator, FringeFields, RealBandPass
-from ._optics import background_radiance, binary_harmonics, gaussian_mtf, image_coordinates, line_transmission
-from ._render import Mechanics, mechanics, reference_grating_phase, upper_grating_phase
 
 
 def beat_coefficients(device: Device) -> tuple[Float[Array, "sets n"], Float[Array, ""]]:

@@ -18,9 +18,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from ._contact import Contact
-from ._device import Device, device_to_json
-from ._render import HighFidelity, render_frame, render_frame_high
+from ..physics import Contact, Device, device_to_json, HighFidelity, render_frame, render_frame_high
 
 
 Protocol = Literal["paper", "mixed", "sequence", "none"]
@@ -219,7 +217,7 @@ def simulate_dataset(
     """
     from tqdm.auto import tqdm
 
-    from ._dataset import DatasetWriter
+    from ..data import DatasetWriter
 
     if unit is None:
         unit = perturb_device(jr.PRNGKey(seed), nominal) if fidelity == "high" else nominal
@@ -273,7 +271,7 @@ def _append_video(video, path: Path, frame: np.ndarray):
 
 def write_contact_sheet(path: Path, samples: list[tuple[int, np.ndarray]], schedule: LoadSchedule) -> None:
     """A grid of sample frames, each titled with its wrench."""
-    from ._plotting import pyplot, save_figure
+    from .._plotting import pyplot, save_figure
 
     plt = pyplot()
     cols = min(4, len(samples))

@@ -30,8 +30,8 @@ import numpy.typing as npt
 from jaxtyping import Bool, Float32, Float64, Int64
 from tqdm import tqdm
 
-from ._conventions import WRENCH_AXES, WRENCH_CONVENTION
-from ._fileio import (
+from .._conventions import WRENCH_AXES, WRENCH_CONVENTION
+from .._fileio import (
     atomic_write_bytes,
     atomic_write_text,
     DataError,

@@ -1,0 +1,23 @@
+"""Calibration of a unit from recorded frames: the physical-parameter fit and its recipes, the residual head, the calibrate, evaluate and transfer workflows, and the wrench metrics.
+
+It imports `inverse` and the layers below, never `design`.
+"""
+
+from ._calibration import (
+    CalibrationResult as CalibrationResult,
+    fit_physical_parameters as fit_physical_parameters,
+    load_recipe as load_recipe,
+    Recipe as Recipe,
+)
+from ._metrics import format_metrics as format_metrics, wrench_metrics as wrench_metrics
+from ._workflows import (
+    calibrate as calibrate,
+    dataset_reference as dataset_reference,
+    evaluate as evaluate,
+    heldout_ridge_r2 as heldout_ridge_r2,
+    invert_frames as invert_frames,
+    load_calibrated as load_calibrated,
+    ridge_baseline as ridge_baseline,
+    spanning_frames as spanning_frames,
+    transfer as transfer,
+)

@@ -1,0 +1,29 @@
+"""What a frame shows: demodulation into fringe fields and observables, the band model that predicts them without rendering, and the match of a reference frame's geometry.
+
+It imports `physics` and the layers below, never `simulate`.
+"""
+
+from ._band_model import (
+    band_model as band_model,
+    BandModel as BandModel,
+    complex_ratio as complex_ratio,
+    predicted_bands as predicted_bands,
+    stray_beat_clearance as stray_beat_clearance,
+)
+from ._observables import (
+    BAND_FRACTION as BAND_FRACTION,
+    BAND_ROLLOFF as BAND_ROLLOFF,
+    brightness_baseline as brightness_baseline,
+    BrightnessBaseline as BrightnessBaseline,
+    Demodulator as Demodulator,
+    frame_summary as frame_summary,
+    FrameSummary as FrameSummary,
+    fringe_observables as fringe_observables,
+    FringeFields as FringeFields,
+    FringeObservables as FringeObservables,
+    NumpyDemodulator as NumpyDemodulator,
+    raised_cosine_window as raised_cosine_window,
+    RealBandPass as RealBandPass,
+    white_noise_variance as white_noise_variance,
+)
+from ._reference import match_reference_geometry as match_reference_geometry
