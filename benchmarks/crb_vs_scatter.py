@@ -53,7 +53,7 @@ from moirejax import (
 )
 
 
-AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
+AXES = mj.WRENCH_AXES
 AGREEMENT = 0.2
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import moirejax as mj
 
 
-AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
+AXES = mj.WRENCH_AXES
 PEER = Path(__file__).resolve().parents[2] / "shared" / "peer" / "raycast_sensor.py"
 
 

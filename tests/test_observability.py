@@ -11,17 +11,16 @@ import moirejax as mj
 from moirejax.design._design import format_design_table
 from moirejax.design._observability import (
     _sensitivity_arrays,
-    _violations,
     cramer_rao,
     fisher_information,
     force_sensitivity,
     nominal_load,
     observability_table,
-    optimise_design,
     phase_range,
     plot_observability,
     reduced_device,
 )
+from moirejax.design._optimise import _violations, optimise_design
 from moirejax.physics._contact import Contact
 from moirejax.physics._geometry import moire_orientation
 from moirejax.physics._render import HighFidelity, render_frame
@@ -109,7 +108,7 @@ def test_band_bound_is_above_the_whole_frame_bound():
     wrench, contact = nominal_load()
     pixels = cramer_rao(device, wrench, contact)
     bands = cramer_rao(device, wrench, contact, estimator="bands")
-    ratio = {axis: bands["std"][axis] / pixels["std"][axis] for axis in ("fx", "fy", "fz", "tx", "ty", "tz")}
+    ratio = {axis: bands["std"][axis] / pixels["std"][axis] for axis in mj.WRENCH_AXES}
     assert all(r > 1 for r in ratio.values())
     assert ratio["fx"] > 3 and ratio["fz"] < 2
     assert bands["worst_axis"] == "fx/fy"
@@ -127,7 +126,7 @@ def test_crb_scales_as_one_over_sqrt_photons():
     quiet = dict(read_noise=0.0, bit_depth=16)
     low = cramer_rao(device, wrench, contact, HighFidelity(full_well=2000.0, **quiet), mechanics_shape=shape)
     high = cramer_rao(device, wrench, contact, HighFidelity(full_well=8000.0, **quiet), mechanics_shape=shape)
-    for axis in ("fx", "fy", "fz", "tx", "ty", "tz"):
+    for axis in mj.WRENCH_AXES:
         assert high["std"][axis] / low["std"][axis] == pytest.approx(0.5, rel=1e-4)
     # With read noise and 8-bit quantisation the gain is a little smaller.
     low = cramer_rao(device, wrench, contact, HighFidelity(full_well=2000.0), mechanics_shape=shape)
@@ -211,7 +210,7 @@ def test_observability_table_and_plot(tmp_path):
     device = mj.preset("mid", height=256, width=256)
     table = observability_table(device, mechanics_shape=(32, 32))
     assert json.loads(json.dumps(table)) == table
-    axes = ("fx", "fy", "fz", "tx", "ty", "tz")
+    axes = mj.WRENCH_AXES
     for prefix in ("", "band_"):
         assert set(table[f"{prefix}worst_axis"].split("/")) <= set(axes)
         assert table[f"{prefix}worst_rel_crb"] == max(table[f"{prefix}rel_crb_{a}"] for a in axes)

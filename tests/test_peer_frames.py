@@ -18,7 +18,7 @@ import moirejax as mj
 
 
 DATA = Path(__file__).parent / "data" / "peer"
-AXES = ("fx", "fy", "fz", "tx", "ty", "tz")
+AXES = mj.WRENCH_AXES
 
 
 @pytest.fixture(scope="module")

@@ -61,7 +61,7 @@ def test_calibrate_evaluate_transfer(datasets):
     metrics = evaluate(root / "fit.json", root / "test", root / "eval", progress=False)
     written = json.loads((root / "eval" / "metrics.json").read_text())
     for key in ("r2", "mae", "rmse", "coverage95"):
-        assert set(written[key]) == {"fx", "fy", "fz", "tx", "ty", "tz"}
+        assert set(written[key]) == set(mj.WRENCH_AXES)
     # A calibrated unit on model-fidelity frames: the normal force is well determined
     # even from this tiny calibration.
     assert metrics["r2"]["fz"] > 0.8, metrics["r2"]
@@ -225,5 +225,5 @@ def test_demo_runs_end_to_end_in_smoke_mode(tmp_path, capsys):
     for name in ("design_maps.png", "fit.json", "after/parity.png", "after/metrics.json", "fit_report/parameters.png"):
         assert (tmp_path / "demo" / name).exists(), name
     # Each axis row: before and after R2 and MAE, two ridge R2 values, the paper's R2.
-    rows = [line for line in out.splitlines() if line[:2] in ("fx", "fy", "fz", "tx", "ty", "tz")]
+    rows = [line for line in out.splitlines() if line[:2] in mj.WRENCH_AXES]
     assert len(rows) == 6 and all(len(row.split()) >= 11 for row in rows)

@@ -11,6 +11,9 @@ A dataset is a folder that ordinary tools can open:
   so a folder without it is recognisably incomplete.
 
 Row numbers in error messages count the header as row 1, as a spreadsheet shows them.
+
+Reader, writer, import and export are one module: they share the CSV and image helpers and
+the constants that define the format.
 """
 
 import csv

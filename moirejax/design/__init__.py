@@ -16,8 +16,8 @@ from ._observability import (
     force_sensitivity as force_sensitivity,
     nominal_load as nominal_load,
     observability_table as observability_table,
-    optimise_design as optimise_design,
     plot_observability as plot_observability,
     reduced_device as reduced_device,
     surface_phase_shift as surface_phase_shift,
 )
+from ._optimise import optimise_design as optimise_design

@@ -8,6 +8,9 @@ folders are delivered in order, every frame, with the capture thread waiting for
 consumer. A live source that stops delivering frames is reopened with exponential
 backoff a bounded number of times; undecodable frames become `"corrupt_frame"` events,
 never exceptions. The last item of every stream is a final event saying why it ended.
+
+It is one module because most of its length is the capture thread, buffer and reconnect
+logic of `AbstractFrameSource` that every source shares.
 """
 
 import abc

@@ -6,6 +6,9 @@ spec: the frame source (a camera index, a video file or URL, a folder of images,
 the [`Inverter`][moirejax.inverse._inversion.Inverter] wrapped by [`make_tactile_processor`][],
 the [`GateER`][] contact gate tuned to the device's moiré wavevectors, and the
 vision-mode colour probe behind a moiré notch filter.
+
+It is one module because it is the wiring of the live sensor: each part is a few dozen
+lines, and split they would spread one assembly over several files.
 """
 
 import logging

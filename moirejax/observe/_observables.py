@@ -59,6 +59,10 @@ compared through [`moirejax.Demodulator.filter_baseband`][] sees the same smooth
 
 Conventions follow `docs/conventions.md`: x right, y up, origin at the image centre,
 $k_y = -2\pi\,\mathrm{fftfreq}$ along rows; wavevectors are rows `[kx, ky]` in rad/mm.
+
+It is one module because the JAX `Demodulator` and its numpy twin share every band-window
+and crop helper (written once for either array module), and the observables and summaries
+read the demodulator's plan.
 """
 
 import cmath
