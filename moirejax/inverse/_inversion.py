@@ -68,6 +68,13 @@ N_UNKNOWNS = 10
 # log contact radius around 3.5 mm.
 _TILT_PRIOR_NMM = 0.8
 _RADIUS_PRIOR = (math.log(3.5), 0.6)
+# Width of the wrench prior, in units of WRENCH_SCALE: a load is a priori about as large as
+# the calibrated range. Data that see an axis override it; data that do not (the shear
+# across a line grating's lines sees the fringes only through second-order effects) leave
+# that axis near zero with an uncertainty of about its range, instead of at a wild value.
+_WRENCH_PRIOR = 1.0
+# Prior residuals: the tilt (2), the radius (1) and the wrench (6).
+N_PRIORS = 9
 # A cold solve whose cost is above this fraction of the zero-load cost tries more starts.
 _UNEXPLAINED = 0.004
 # Window (mm, Gaussian sd) over which the phase change is averaged to detect a contact.
@@ -195,6 +202,11 @@ class Inverter(eqx.Module):
     - `contact_threshold`: how many times its noise level the fringe phase must move, in a
       window somewhere on the frame, for the frame to count as in contact
       ([`Inverter.phase_change`][]).
+    - `brightness`: fit the brightness band too, through the device's law of the light a
+      contact scatters (glow and rim). Off by default: a unit need not follow that law (an
+      elastomer that does not glow, other lighting), and a law the unit does not follow
+      biases the normal force; the fringe phase alone carries the load. Turn it on for a
+      unit whose calibration frames show the brightness response the device describes.
     """
 
     device: Device
@@ -214,6 +226,7 @@ class Inverter(eqx.Module):
     rtol: float = eqx.field(static=True)
     atol: float = eqx.field(static=True)
     contact_threshold: float = eqx.field(static=True)
+    brightness: bool = eqx.field(static=True)
     chord_steps: int = eqx.field(static=True)
     chord_tolerance: float = eqx.field(static=True)
 
@@ -229,6 +242,7 @@ class Inverter(eqx.Module):
         rtol: float = 1e-5,
         atol: float = 1e-5,
         contact_threshold: float = 10.0,
+        brightness: bool = False,
         match_reference: bool = True,
         chord_steps: int = 4,
         chord_tolerance: float = 0.25,
@@ -254,6 +268,7 @@ class Inverter(eqx.Module):
         self.rtol = rtol
         self.atol = atol
         self.contact_threshold = contact_threshold
+        self.brightness = bool(brightness)
         self.chord_steps = chord_steps
         self.chord_tolerance = chord_tolerance
         self.demodulator = Demodulator(
@@ -303,7 +318,7 @@ class Inverter(eqx.Module):
         # Integrated brightness excess per newton of a centred press: starts Fz.
         press = zero.at[2].set(1.0 / WRENCH_SCALE[2])
         excess = self._predict_now(press, None).brightness - self._predict_now(zero, None).brightness
-        self.glow_per_newton = jnp.sum(excess * self.brightness_weight)
+        self.glow_per_newton = jnp.sum(excess * self.demodulator.brightness_envelope.astype(zero.dtype))
         # The phase noise of a frame against the reference at each coarse-grid point, per unit
         # of white pixel variance: the part of the unit-noise fringe residual across the
         # fringe phasor (half of it). A frame's own pixel variance and the reference's
@@ -361,7 +376,7 @@ class Inverter(eqx.Module):
         )
         radius = (y[8] - _RADIUS_PRIOR[0]) / _RADIUS_PRIOR[1]
         # Priors are in units of the data noise so their weight does not depend on it.
-        return jnp.concatenate([tilt, radius[None]]) * noise
+        return jnp.concatenate([tilt, radius[None], y[:6] / _WRENCH_PRIOR]) * noise
 
     def residuals(self, y, args):
         """Whitened data residuals followed by the prior residuals (optimistix signature)."""
@@ -431,7 +446,11 @@ class Inverter(eqx.Module):
         """A cold start from the brightness excess: its centroid places the contact, its
         integral sets Fz through the model's glow per newton, and a centred pressure
         gives Tx, Ty."""
-        excess = (observed.brightness - self.reference.brightness) * self.brightness_weight
+        # Only a start: the brightness excess places it whether or not the residual uses the
+        # brightness band (a unit that does not glow falls back on the fringe change).
+        excess = (observed.brightness - self.reference.brightness) * self.demodulator.brightness_envelope.astype(
+            observed.brightness.dtype
+        )
         positive = jnp.maximum(excess, 0.0)
         # Centroid of the excess in a window around its peak: the band-limited brightness
         # rings, and a global centroid would be pulled to the image centre.
@@ -509,7 +528,8 @@ class Inverter(eqx.Module):
         # the field is outside any contact), scaled to a Gaussian sigma. Every fourth value
         # is plenty (1280 for crossed grids: 3.5% scatter) and sorts 5x faster than all;
         # the level only weighs the priors and sizes the steps in standard errors.
-        noise = jnp.maximum(_median(jnp.abs(r_zero[::4])) / 0.6745, 1e-9)
+        fringe_size = 2 * self.fringe_weight.size
+        noise = jnp.maximum(_median(jnp.abs(r_zero[:fringe_size:4])) / 0.6745, 1e-9)
         return screen, observed, r_zero, noise
 
     def _prior_jacobian(self, y, noise):
@@ -538,7 +558,7 @@ class Inverter(eqx.Module):
         def step(y, r, jacobian):
             prior_jac = self._prior_jacobian(y, noise)
             jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
-            gradient = jacobian.T @ r[:-3] + prior_jac.T @ r[-3:]
+            gradient = jacobian.T @ r[:-N_PRIORS] + prior_jac.T @ r[-N_PRIORS:]
             inverse = jnp.linalg.pinv(jtj, hermitian=True)
             dy = -inverse @ gradient
             # Steps in units of each unknown's standard error at this noise level.
@@ -558,7 +578,7 @@ class Inverter(eqx.Module):
             r_new = self.residuals(y_new, args)
             # Below ~1e-4 of an axis' range the residual change is rounding, not secant.
             secant = jnp.max(jnp.abs(dy)) > 1e-4
-            mismatch = (r_new - r)[:-3] - jacobian @ dy
+            mismatch = (r_new - r)[:-N_PRIORS] - jacobian @ dy
             update = jnp.outer(mismatch, dy) / jnp.maximum(jnp.sum(dy**2), 1e-30)
             jacobian = jnp.where(secant & jnp.all(jnp.isfinite(update)), jacobian + update, jacobian)
             dy_new, size_new = step(y_new, r_new, jacobian)
@@ -665,10 +685,25 @@ class Inverter(eqx.Module):
         estimate is at `y + pending` (see [`Inverter._chord`][]), the track stays at `y`,
         where its prediction is known."""
         dtype = y.dtype
-        r_data = r[:-3]
-        prior_jac = self._prior_jacobian(y, noise)
+        r_data = r[:-N_PRIORS]
+        # The priors were weighed against the pixel noise. Where the model misses part of
+        # the frame (a unit or renderer it does not describe exactly), the residual is larger
+        # than that noise, the data say less than the pixel noise suggests, and the priors
+        # must weigh as much against the residual's actual size: one Gauss-Newton step with
+        # the priors at that weight, from the solution and its Jacobian, moves the unknowns
+        # the data do not see back towards their priors. On a frame the model explains to the
+        # noise level the weight is unchanged and the step is the solver's own tolerance.
+        # The residual's size where the unknowns' signal lives (each datum weighed by how much
+        # the unknowns move it): a misfit near the contact is diluted by the far field in a
+        # plain mean.
+        signal = jnp.sum(jacobian**2, axis=1)
+        misfit = jnp.sqrt(jnp.sum(r_data**2 * signal) / jnp.maximum(jnp.sum(signal), 1e-30))
+        prior_weight = jnp.maximum(noise, misfit)
+        prior_jac = self._prior_jacobian(y, prior_weight)
         jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
         inverse = jnp.linalg.pinv(jtj, hermitian=True)
+        reweigh = -inverse @ (jacobian.T @ r_data + prior_jac.T @ self._prior_residuals(y, prior_weight))
+        pending = jnp.where(jnp.all(jnp.isfinite(reweigh)), reweigh, 0.0) + (0.0 if pending is None else pending)
         # Sandwich covariance for correlated noise: the estimate moves by A e for a data
         # noise e, A = (J^T J)^-1 J_data^T; E[e e^T] comes from the stored unit-noise draws.
         # The pixel variance is what makes the residual's expected size match its actual one.
@@ -680,10 +715,13 @@ class Inverter(eqx.Module):
         explained = jnp.sum(moved * (moved @ (jacobian.T @ jacobian))) / samples
         unit_rss = self.noise_power - explained
         variance = jnp.sum(r_data**2) / jnp.maximum(unit_rss, 1e-30)
-        cov_y = unit_cov * variance
+        # The priors act as observations with the residual's noise level: their share of the
+        # uncertainty is what keeps an axis the data do not see at about its prior width.
+        prior_part = inverse @ (prior_jac.T @ prior_jac) @ inverse * prior_weight**2
+        cov_y = unit_cov * variance + prior_part
         scale = jnp.asarray(WRENCH_SCALE, dtype)
         covariance = cov_y[:6, :6] * scale[:, None] * scale[None, :]
-        y_out = y if pending is None else y + pending
+        y_out = y + pending
         wrench, contact, exposure = _unpack(y_out)
         # Contact from the data: has the fringe phase moved beyond its noise somewhere?
         in_contact = self._phase_change_statistic(observed, screen) > self.contact_threshold
@@ -710,6 +748,33 @@ class Inverter(eqx.Module):
         )
         return estimate, track
 
+    def _fitting(self, light) -> "Inverter":
+        """This inverter with a residual of the fringe fields alone (brightness weight and its
+        share of the unit-noise draws set to zero), and the light a contact scatters (glow and
+        rim) scaled by `light` in the model: 1 for a unit that scatters it as the device
+        says, 0 for one that does not. The light leaks into the fringe bands, so a law the
+        unit does not follow biases the fringe fit too."""
+        fringe_size = 2 * self.fringe_weight.size
+        noise_residuals = self.noise_residuals.at[:, fringe_size:].set(0.0)
+        optics = self.model.mechanics.device.optics
+        return eqx.tree_at(
+            lambda i: (
+                i.brightness_weight,
+                i.noise_residuals,
+                i.noise_power,
+                i.model.mechanics.device.optics.glow_gain,
+                i.model.mechanics.device.optics.rim_gain,
+            ),
+            self,
+            (
+                jnp.zeros_like(self.brightness_weight),
+                noise_residuals,
+                jnp.sum(noise_residuals**2) / noise_residuals.shape[0],
+                optics.glow_gain * light,
+                optics.rim_gain * light,
+            ),
+        )
+
     def track(self, frame: Float[Array, "h w"], track: "Track") -> tuple[Estimate, "Track"]:
         """Invert one frame of a stream; pure and jit-able (see [`track_frame`][]).
 
@@ -718,6 +783,7 @@ class Inverter(eqx.Module):
         valid track, Levenberg–Marquardt from the best of the last solution and the cold
         guess (its first two starts only, so that a stream does not stall; see
         `Inverter._levenberg_marquardt`). Returns the estimate and the track for the next frame.
+        A stream fits the fringe fields and the brightness whatever `brightness` says.
         """
         screen, observed, r_zero, noise = self._prepare(frame)
         args = (observed, noise)
@@ -771,6 +837,12 @@ class Inverter(eqx.Module):
         `init` warm-starts the solver (the previous frame's `Estimate.state`); `None` or a
         non-finite `init` means a cold start from the brightness excess. Streams are faster
         through [`Inverter.track`][].
+
+        Without `brightness`, the solution of the full residual (fringe fields and
+        brightness), whose glow places a cold start in the right basin on a unit that glows,
+        is refined on the fringe fields alone twice: with the contact light the device
+        describes, and with none. The better fringe fit is the estimate, so that a unit that
+        does not glow as the device says (or at all) is not biased by the law.
         """
         screen, observed, r_zero, noise = self._prepare(frame)
         args = (observed, noise)
@@ -784,7 +856,32 @@ class Inverter(eqx.Module):
             warm = jnp.where(usable, init, cold)
             y0, _ = self._best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
         y, r, jacobian, steps, result = self._levenberg_marquardt(y0, args)
-        return self._finish(screen, observed, r_zero, noise, y, r, jacobian, steps, result, y0)[0]
+        if self.brightness:
+            return self._finish(screen, observed, r_zero, noise, y, r, jacobian, steps, result, y0)[0]
+        fringe_size = 2 * self.fringe_weight.size
+        r_zero = r_zero.at[fringe_size:].set(0.0)
+
+        zero_cost = jnp.sum(r_zero**2)
+
+        def refine(more_starts, light):
+            # The device's light first; the second refinement (no light) tries further
+            # starts only when the first leaves the frame poorly explained: a unit that
+            # glows as the device says is done in a few steps, one that does not needs them.
+            y_, r_, jacobian_, steps_, result_ = self._fitting(light)._levenberg_marquardt(
+                y, args, more_starts=more_starts
+            )
+            poor = jnp.sum(r_[:-N_PRIORS] ** 2) > _UNEXPLAINED * zero_cost
+            return poor, (y_, r_, jacobian_, steps_, result_)
+
+        # One traced solver run twice (light as the device says, then none), not two copies.
+        lights = jnp.asarray([1.0, 0.0], y.dtype)
+        _, (ys, rs, jacobians, refine_steps, results) = jax.lax.scan(refine, jnp.asarray(False), lights)
+        costs = jnp.sum(rs[:, :-N_PRIORS] ** 2, axis=1)
+        best = jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))
+        fit = self._fitting(lights[best])
+        y, r, jacobian, result = jax.tree_util.tree_map(lambda a: a[best], (ys, rs, jacobians, results))
+        steps = steps + jnp.sum(refine_steps).astype(steps.dtype)
+        return fit._finish(screen, observed, r_zero, noise, y, r, jacobian, steps, result, y0)[0]
 
     def chord_batch(self, frames: Float[Array, "b h w"], track: "Track") -> tuple[Estimate, Bool[Array, " b"], "Track"]:
         """Frozen-Jacobian iterations for a batch of nearby frames from one shared `track`.
