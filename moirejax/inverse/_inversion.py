@@ -597,7 +597,7 @@ class Inverter(eqx.Module):
     def _data_jacobian(self, y, observed):
         return jax.jacfwd(self._data_residuals)(y, observed)
 
-    def _levenberg_marquardt(self, y0, args, *, more_starts: bool = True):
+    def _levenberg_marquardt(self, y0, args, *, more_starts: bool | Bool[Array, ""] = True):
         """Levenberg–Marquardt from `y0`, then again from its solution with the shear
         forces zeroed; the lower cost wins.
 
