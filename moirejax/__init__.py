@@ -16,6 +16,7 @@ from ._fileio import (
 )
 from .calibration import (
     calibrate as calibrate,
+    calibration_verdict as calibration_verdict,
     CalibrationResult as CalibrationResult,
     dataset_reference as dataset_reference,
     evaluate as evaluate,

@@ -57,6 +57,8 @@ def test_calibrate_evaluate_transfer(datasets):
     for name in ("metrics.json", "parity.png", "residuals.png", "parameters.png"):
         assert (report / name).exists(), name
     assert summary["parameters"][0]["parameter"] == "elastomer.E" and "true" in summary["parameters"][0]
+    written_verdict = json.loads((report / "metrics.json").read_text())["verdict"]
+    assert written_verdict == json.loads(json.dumps(summary["verdict"])) and "inside_model" in written_verdict
 
     metrics = evaluate(root / "fit.json", root / "test", root / "eval", progress=False)
     written = json.loads((root / "eval" / "metrics.json").read_text())
@@ -227,3 +229,28 @@ def test_demo_runs_end_to_end_in_smoke_mode(tmp_path, capsys):
     # Each axis row: before and after R2 and MAE, two ridge R2 values, the paper's R2.
     rows = [line for line in out.splitlines() if line[:2] in mj.WRENCH_AXES]
     assert len(rows) == 6 and all(len(row.split()) >= 11 for row in rows)
+
+
+def test_calibration_verdict_names_the_axes_a_pixel_regression_reads_better():
+    recipe = Recipe(name="t", free=("p1", "elastomer.E"), log=("elastomer.E",), prior_sd=(("p1", 0.001),))
+    r2 = dict.fromkeys(mj.WRENCH_AXES, 0.99)
+    baselines = {"20": dict.fromkeys(mj.WRENCH_AXES, 0.999), "400": {**dict.fromkeys(mj.WRENCH_AXES, 0.5), "fz": 0.995}}
+    parameters = [
+        {"parameter": "p1", "nominal": 0.35, "fitted": 0.3515, "sd": 1e-4},
+        {"parameter": "elastomer.E", "nominal": 1.0, "fitted": 1.1, "sd": 0.01},
+    ]
+    # The baseline trained on the most frames is the one compared with; a NaN R² (an axis the
+    # calibration never read) counts as behind.
+    verdict = mj.calibration_verdict({"r2": {**r2, "tz": math.nan}}, baselines, parameters, recipe)
+    assert not verdict["inside_model"]
+    assert set(verdict["axes_behind_baseline"]) == {"fz", "tz"}
+    assert verdict["axes_behind_baseline"]["fz"] == {"calibrated": 0.99, "ridge_baseline": 0.995}
+    # p1 moved 1.5 prior widths: not strained; the free modulus moved 10%: not strained.
+    assert verdict["strained_parameters"] == []
+    moved = [{**parameters[0], "fitted": 0.354}, {**parameters[1], "fitted": 1.5}]
+    strained = mj.calibration_verdict({"r2": r2}, baselines, moved, recipe)["strained_parameters"]
+    assert [p["parameter"] for p in strained] == ["p1", "elastomer.E"]
+    assert strained[0]["prior_widths"] == pytest.approx(4.0)
+    assert mj.calibration_verdict({"r2": r2}, {"400": dict.fromkeys(mj.WRENCH_AXES, 0.9)}, parameters, recipe)[
+        "inside_model"
+    ]

@@ -12,6 +12,7 @@ from ._calibration import (
 from ._metrics import format_metrics as format_metrics, wrench_metrics as wrench_metrics
 from ._workflows import (
     calibrate as calibrate,
+    calibration_verdict as calibration_verdict,
     dataset_reference as dataset_reference,
     evaluate as evaluate,
     heldout_ridge_r2 as heldout_ridge_r2,

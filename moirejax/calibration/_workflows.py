@@ -289,6 +289,7 @@ def calibrate(
             "tilt_matrix": tilt.tolist(),
             "tilt_matrix_r2": tilt_r2,
             "ridge_baseline_r2_crossvalidated": baselines,
+            "verdict": calibration_verdict(metrics, baselines, parameters, recipe),
             "history": result.history,
             "recipe": recipe.to_json(),
         },
@@ -309,8 +310,47 @@ def calibrate(
         "physics_only": metrics_physics,
         "parameters": parameters,
         "baselines": baselines,
+        "verdict": calibration_verdict(metrics, baselines, parameters, recipe),
         "report": str(report_dir),
     }
+
+
+# A fitted parameter this many prior widths from where it started (or, without a prior,
+# this fraction of its nominal value) is one the data pulled hard: the model bends to a
+# unit it does not describe.
+_STRAINED_PRIOR_WIDTHS = 3.0
+_STRAINED_FRACTION = 0.3
+
+
+def calibration_verdict(metrics: dict, baselines: dict, parameters: list[dict], recipe: Recipe) -> dict:
+    """Whether a calibrated unit is inside the model: its wrench R² on every axis against
+    the cross-validated [`ridge_baseline`][] trained on the most frames, and the fitted
+    parameters that moved far from their start.
+
+    A pixel regression that reads an axis better than the calibrated physics says the
+    physics misses something this unit does (its photometry, its mechanics, a load shape);
+    `inside_model` is false then and `axes_behind_baseline` names each such axis with both
+    R² values. The comparison favours the physics slightly (its R² is in-sample, the
+    baseline's cross-validated), so a unit it flags is outside the model for certain.
+    """
+    behind = {}
+    if baselines:
+        ridge = baselines[max(baselines, key=int)]
+        for axis, r2 in metrics["r2"].items():
+            if not (r2 >= ridge[axis]):
+                behind[axis] = {"calibrated": r2, "ridge_baseline": ridge[axis]}
+    prior = dict(recipe.prior_sd)
+    strained = []
+    for row in parameters:
+        name, nominal, fitted = row["parameter"], row["nominal"], row["fitted"]
+        if name in prior:
+            move = math.log(abs(fitted / nominal)) if name in recipe.log and nominal and fitted else fitted - nominal
+            widths = abs(move) / prior[name]
+            if widths > _STRAINED_PRIOR_WIDTHS:
+                strained.append({"parameter": name, "nominal": nominal, "fitted": fitted, "prior_widths": widths})
+        elif nominal and abs(fitted / nominal - 1.0) > _STRAINED_FRACTION:
+            strained.append({"parameter": name, "nominal": nominal, "fitted": fitted})
+    return {"inside_model": not behind, "axes_behind_baseline": behind, "strained_parameters": strained}
 
 
 def eqx_replace_tilt(device, tilt: np.ndarray):

@@ -187,6 +187,19 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     for n_train, r2 in summary["baselines"].items():
         print(f"  {n_train:>4s}: " + "  ".join(f"{axis} {value:.3f}" for axis, value in r2.items()))
     print(f"wrote {args.out} and {summary['report']}/")
+    verdict = summary["verdict"]
+    if not verdict["inside_model"]:
+        axes = ", ".join(
+            f"{axis} {v['calibrated']:.3f} < {v['ridge_baseline']:.3f}"
+            for axis, v in verdict["axes_behind_baseline"].items()
+        )
+        strained = ", ".join(p["parameter"] for p in verdict["strained_parameters"]) or "none"
+        print(
+            f"WARNING: {args.data}: this unit is outside the model: a pixel regression reads {axes} (R2, calibrated "
+            f"< ridge). Parameters pulled far from their start: {strained}. See {summary['report']}/residuals.png and "
+            "metrics.json 'verdict'; more frames (--max-frames) or a recipe that frees more (--recipe) may help.",
+            file=sys.stderr,
+        )
     return 0
 
 
