@@ -4,13 +4,14 @@
 these tests check what a build cannot: that every public name has a place in the API
 reference, that every JSON Schema has a table on the data-formats page, that nothing links
 outside the repository, that the documentation, notebooks and benchmarks use only the
-public names, that the paths and commands the README names exist, and that the Python
-example of the getting-started page does what the page says.
+public names, that the README stays a short front door whose paths and commands exist, and
+that the Python examples of the README and the getting-started page do what they say.
 """
 
 import argparse
 import importlib
 import importlib.resources
+import os
 import re
 import subprocess
 import sys
@@ -135,6 +136,25 @@ def test_nothing_links_outside_the_repository():
         assert "../shared" not in text and "shared/reference" not in text, f"{source.relative_to(ROOT)}"
 
 
+def test_readme_is_a_short_front_door():
+    lines = README.read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= 150, f"README.md has {len(lines)} lines; move long content into docs/"
+    # The two commands for a fresh machine come first (.ci/run runs the second verbatim).
+    assert lines[:4] == [
+        "```bash",
+        "python3 -m pip install -e . && moirejax demo",
+        'python3 -m pip install -e ".[test]" && python3 -m pytest',
+        "```",
+    ]
+
+
+def test_readme_links_only_to_pages_that_exist():
+    links = re.findall(r"\]\(([^)\s]+)\)", README.read_text(encoding="utf-8"))
+    assert any(link.startswith("docs/") and link.endswith(".md") for link in links), links
+    missing = sorted({link for link in links if not (ROOT / link.split("#")[0]).is_file()})
+    assert not missing, f"README.md links to files that do not exist: {missing}"
+
+
 def test_every_path_the_readme_names_exists():
     text = README.read_text(encoding="utf-8")
     # Code spans that are a single path, and link targets, rooted in a folder of the repository
@@ -147,15 +167,34 @@ def test_every_path_the_readme_names_exists():
     assert not missing, f"README.md names paths that do not exist: {missing}"
 
 
-def test_readme_task_table_has_every_cli_command_once():
+def test_readme_command_table_has_every_cli_command_once():
     from moirejax.cli._main import build_parser
 
     (subparsers,) = [action for action in build_parser()._actions if isinstance(action, argparse._SubParsersAction)]
     text = README.read_text(encoding="utf-8")
-    section = text.split("## What you can do", 1)[1].split("\n## ", 1)[0]
-    rows = [line.split("|") for line in section.splitlines() if line.startswith("| ") and "`moirejax " in line]
-    listed = [re.match(r" `moirejax (\S+)", row[2]).group(1) for row in rows]
+    section = text.split("\n## Command line\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split("|") for line in section.splitlines() if line.startswith("| `moirejax ")]
+    listed = [re.fullmatch(r" `moirejax (\S+)` ", row[1]).group(1) for row in rows]
     assert sorted(listed) == sorted(subparsers.choices), listed
+    assert all(row[2].strip() for row in rows), "every command says what it does"
+
+
+def test_readme_example_calibrates_and_inverts(tmp_path):
+    (example,) = re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), re.DOTALL)
+    assert "moirejax._" not in example and "import moirejax as mj" in example
+    # The example says it inverts a new frame of the calibrated unit: check it is read well.
+    check = """
+assert mj.Status(int(estimate.status)) == mj.Status.CONVERGED, estimate.status
+assert abs(float(estimate.wrench[2]) - test.wrenches[0][2]) < 0.1, (estimate.wrench, test.wrenches[0])
+"""
+    # The checkout, importable without an install; the tests' model grid (tests/conftest.py) keeps it quick.
+    env = os.environ | {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    done = subprocess.run(
+        [sys.executable, "-c", example + check], cwd=tmp_path, env=env, capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "wrench" in done.stdout and "sigma" in done.stdout
+    assert (tmp_path / "fit.json").is_file()
 
 
 def test_getting_started_example_runs_and_recovers_the_wrench(tmp_path):

@@ -1,4 +1,5 @@
-"""The README's CLI reference, generated from the argument parser so it never drifts."""
+"""The command-line reference page of the documentation (`docs/cli.md`), generated from the
+argument parser so that it never drifts from the commands."""
 
 import argparse
 
@@ -33,8 +34,11 @@ def cli_reference() -> str:
     return "\n".join(lines)
 
 
-def update_readme(path: str = "README.md") -> bool:
-    """Rewrite the generated section of the README; returns whether it changed."""
+PAGE = "docs/cli.md"
+
+
+def update_reference(path: str = PAGE) -> bool:
+    """Rewrite the generated section of the reference page; returns whether it changed."""
     with open(path, encoding="utf-8") as f:
         text = f.read()
     start, end = text.index(BEGIN), text.index(END) + len(END)
@@ -46,4 +50,4 @@ def update_readme(path: str = "README.md") -> bool:
 
 
 if __name__ == "__main__":
-    print("updated" if update_readme() else "README CLI reference is current")
+    print("updated" if update_reference() else f"{PAGE} is current")
