@@ -30,6 +30,11 @@ fringe phase has moved from the reference by more than the frame's and the refer
 pixel noise put there, somewhere on the frame ([`Inverter.phase_change`][]). Exposure,
 illumination and the fringes' contrast do not move the phase, and a load the model
 explains badly still moves it, so such a load is never reported as no contact.
+
+It is one module because the residual, its two solvers (Levenberg–Marquardt for cold
+frames, frozen-Jacobian iterations for streams), the covariance and the status all read
+the same `Inverter` fields and the same packed state; split apart, each piece would
+re-derive the others' layout of the residual vector.
 """
 
 import enum
@@ -526,8 +531,8 @@ class Inverter(eqx.Module):
         r_zero = self._zero_residuals(observed)
         # Robust noise level: the median absolute whitened residual of zero load (most of
         # the field is outside any contact), scaled to a Gaussian sigma. Every fourth value
-        # is plenty (1280 for crossed grids: 3.5% scatter) and sorts 5x faster than all;
-        # the level only weighs the priors and sizes the steps in standard errors.
+        # is plenty (1280 for crossed grids: 3.5% scatter); the level only weighs the
+        # priors and sizes the steps in standard errors.
         fringe_size = 2 * self.fringe_weight.size
         noise = jnp.maximum(_median(jnp.abs(r_zero[:fringe_size:4])) / 0.6745, 1e-9)
         return screen, observed, r_zero, noise
@@ -946,8 +951,8 @@ class _Screen(eqx.Module):
 
 
 def _median(values: Float[Array, " n"]) -> Float[Array, ""]:
-    """`jnp.median` by partition instead of a full sort: 5x faster on CPU for the 1280 values
-    of a frame's noise level (0.02 against 0.13 ms), the same number."""
+    """`jnp.median` by partition instead of a full sort: the same number, without sorting
+    the values a frame's noise level is taken from."""
     n = values.shape[0]
     upper = jnp.partition(values, n // 2)
     return upper[n // 2] if n % 2 else 0.5 * (jnp.max(upper[: n // 2]) + upper[n // 2])
@@ -1012,8 +1017,8 @@ def frame_tracker(inverter: Inverter) -> Callable[[Float[Array, "h w"], Track], 
     `estimate, track = step(frame, track)` per frame, the same results.
 
     For a camera loop. An `Inverter` is some 130 arrays, and handing them to a compiled
-    function through `eqx.filter_jit` costs about 0.2 ms at every call (7% of a frame on Mid);
-    here they are flattened once, and each frame goes through `jax.jit`'s own dispatch.
+    function through `eqx.filter_jit` flattens them again at every call; here they are
+    flattened once, and each frame goes through `jax.jit`'s own dispatch.
     The step compiles on its first frame and never again for frames of the device's size
     and dtype.
     """
