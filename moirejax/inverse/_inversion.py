@@ -456,10 +456,16 @@ class Inverter(eqx.Module):
         excess = (observed.brightness - self.reference.brightness) * self.demodulator.brightness_envelope.astype(
             observed.brightness.dtype
         )
-        positive = jnp.maximum(excess, 0.0)
-        # Centroid of the excess in a window around its peak: the band-limited brightness
-        # rings, and a global centroid would be pulled to the image centre.
-        x0, y0 = self._peak_centroid(positive)
+        # Centroid of the excess relative to the reference's own brightness, in a window
+        # around its peak: the glow rides on the illumination, whose fall-off towards the
+        # edges (and the envelope's) would pull the peak of the plain excess to the image
+        # centre, by about a third of the way for a press 8 mm out; and the band-limited
+        # brightness rings, so a global centroid would be pulled there too.
+        relative = (observed.brightness - self.reference.brightness) / jnp.maximum(
+            jnp.abs(self.reference.brightness), 1e-6 * jnp.max(jnp.abs(self.reference.brightness)) + 1e-30
+        )
+        inside = self.demodulator.brightness_envelope > 0.2 * jnp.max(self.demodulator.brightness_envelope)
+        x0, y0 = self._peak_centroid(jnp.where(inside, jnp.maximum(relative, 0.0), 0.0).astype(excess.dtype))
         fz = jnp.clip(jnp.sum(excess) / self.glow_per_newton, 0.0, 3.0)
         y_init = initial_state(dtype=excess.dtype)
         scale = jnp.asarray(WRENCH_SCALE, excess.dtype)
