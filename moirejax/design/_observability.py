@@ -56,6 +56,7 @@ from ..physics import (
     render_frame,
     surface_grid,
     SurfaceGrid,
+    wavenumber_grid,
 )
 
 
@@ -288,9 +289,7 @@ def band_weight(device: Device, band_fraction: float = BAND_FRACTION) -> Float[A
     """
     h, w = device.height, device.width
     dtype = device.p1.dtype
-    kx = 2 * jnp.pi * jnp.fft.fftfreq(w).astype(dtype) * device.px_per_mm
-    # Rows run towards -y (docs/conventions.md).
-    ky = -2 * jnp.pi * jnp.fft.fftfreq(h).astype(dtype) * device.px_per_mm
+    kx, ky = wavenumber_grid((h, w), 1 / device.px_per_mm, dtype=dtype)
     KX, KY = kx[None, :], ky[:, None]
     K = device.moire_wavevectors()
     K_norm = jnp.linalg.norm(K, axis=-1)

@@ -14,8 +14,9 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
+from ..physics import wavenumber_grid
 from ._camera import Frame
-from ._spectrum import spectral_peaks, to_index_wavevectors, to_physical_wavevectors
+from ._spectrum import spectral_peaks, to_physical_wavevectors
 from ._types import Real
 
 
@@ -72,19 +73,19 @@ class MoireNotch:
         harmonics: int = 1,
     ):
         h, w = shape
-        k = to_index_wavevectors(wavevectors, px_per_mm)
-        f_row = np.fft.fftfreq(h)[:, None]
-        f_col = np.fft.rfftfreq(w)[None, :]
-        sigma = width / max(h, w)  # cycles per px
+        kx, ky = wavenumber_grid((h, w), 1 / px_per_mm, real=True, xp=np)
+        # The sampled spectrum repeats every 2 pi rad/px (2 pi px_per_mm rad/mm); sigma is
+        # `width` bins of the larger side.
+        period = 2 * np.pi * px_per_mm
+        sigma = period * width / max(h, w)
         gain = np.ones((h, w // 2 + 1))
-        for kc, kr in k:
+        for k_x, k_y in np.asarray(wavevectors, dtype=np.float64).reshape(-1, 2):
             for m in range(1, harmonics + 1):
                 for sign in (1, -1):
-                    fc, fr = sign * m * kc / (2 * np.pi), sign * m * kr / (2 * np.pi)
                     # Distance on the periodic frequency torus, so aliased notches land right.
-                    dc = (f_col - fc + 0.5) % 1.0 - 0.5
-                    dr = (f_row - fr + 0.5) % 1.0 - 0.5
-                    gain *= 1 - np.exp(-(dc**2 + dr**2) / (2 * sigma**2))
+                    dx = (kx[None, :] - sign * m * k_x + period / 2) % period - period / 2
+                    dy = (ky[:, None] - sign * m * k_y + period / 2) % period - period / 2
+                    gain *= 1 - np.exp(-(dx**2 + dy**2) / (2 * sigma**2))
         self.shape = (h, w)
         self.gain = gain
 

@@ -76,6 +76,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Complex, Float
 
+from ..physics import wavenumber_grid
+
 
 # Band radius over |K| and taper of every band's window, unless a Demodulator is told
 # otherwise. Below 0.5 the fringe bands stay clear of the brightness band.
@@ -944,8 +946,8 @@ def _coarse_gradient(demodulator, field):
     m, n = demodulator.crop_shape
     dtype = field.dtype
     pixel = 1 / demodulator.px_per_mm.astype(dtype)
-    kx = jnp.arange(n // 2 + 1, dtype=dtype) * (2 * math.pi / w) / pixel
-    ky = -jnp.fft.fftfreq(m, 1 / m).astype(dtype) * (2 * math.pi / h) / pixel
+    # The coarse grid samples the frame's field at h/m and w/n pixels.
+    kx, ky = wavenumber_grid((m, n), (h / m * pixel, w / n * pixel), real=True, dtype=dtype)
     coefficients = jnp.fft.rfft2(field)
     kx, ky = kx.astype(coefficients.dtype), ky.astype(coefficients.dtype)
     return (

@@ -28,6 +28,7 @@ from ._elastomer import (
     LayerResponse as LayerResponse,
     surface_displacement as surface_displacement,
 )
+from ._fourier import wavenumber_grid as wavenumber_grid
 from ._geometry import (
     apparent_pitch as apparent_pitch,
     effective_mismatch_exact as effective_mismatch_exact,

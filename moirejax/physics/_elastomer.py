@@ -44,6 +44,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Complex, Float
 
+from ._fourier import wavenumber_grid
+
 
 # Beyond s = |q| h = 30 every e^{-2s} term is below 1e-25 relative to the O(1) terms, so the
 # layer equals the half-space to all float64 digits; clamping keeps s^2 e^{-2s} from forming
@@ -287,8 +289,7 @@ def layer_response(
     n_rows, n_cols = (int(n) for n in shape)
     dtype = _inexact_dtype(spacing, E, nu, thickness) if dtype is None else dtype
     spacing, E, nu, thickness = (jnp.asarray(v, dtype) for v in (spacing, E, nu, thickness))
-    kx = 2 * jnp.pi * jnp.fft.rfftfreq(n_cols, dtype=dtype) / spacing
-    ky = -2 * jnp.pi * jnp.fft.fftfreq(n_rows, dtype=dtype) / spacing
+    kx, ky = wavenumber_grid((n_rows, n_cols), spacing, real=True, dtype=dtype)
     qx, qy, q, cos, sin, at_zero = _wavevector_polar(kx[None, :], ky[:, None], dtype)
     C_TT, C_LL, C_ww, Y = _layer_modal_compliance(q, at_zero, E, nu, thickness)
     # On an even grid the Nyquist frequency stands for +q and -q at once and can only carry

@@ -18,6 +18,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._contact import Contact, SurfaceGrid
 from ._device import Device
+from ._fourier import wavenumber_grid
 
 
 def binary_harmonics(duty: ArrayLike, harmonics: int) -> Float[Array, " n"]:
@@ -70,22 +71,11 @@ def background_radiance(device: Device, x: Float[Array, "h w"], y: Float[Array, 
     return device.optics.background * (1 - device.optics.vignetting * (x**2 + y**2) / corner2)
 
 
-def grid_wavenumbers(shape: tuple[int, int], spacing: ArrayLike) -> tuple[Float[Array, "h w"], Float[Array, "h w"]]:
-    """Angular wavenumbers (kx, ky) of a full FFT grid in the x-right / y-up convention."""
-    h, w = shape
-    spacing = jnp.asarray(spacing)
-    kx = 2 * jnp.pi * jnp.fft.fftfreq(w) / spacing
-    ky = -2 * jnp.pi * jnp.fft.fftfreq(h) / spacing
-    KX, KY = jnp.meshgrid(kx, ky, indexing="xy")
-    return KX, KY
-
-
 def gaussian_blur_fft(field: Float[Array, "h w"], sigma: ArrayLike, spacing: ArrayLike) -> Float[Array, "h w"]:
     """Periodic Gaussian blur of std `sigma` (mm) of a field sampled at `spacing` (mm)."""
     h, w = field.shape
     # rfft2 keeps columns 0..w/2; the transfer is even in k, so only |k| matters.
-    kx = 2 * jnp.pi * jnp.fft.rfftfreq(w) / spacing
-    ky = 2 * jnp.pi * jnp.fft.fftfreq(h) / spacing
+    kx, ky = wavenumber_grid((h, w), spacing, real=True)
     # From |k|^2 directly: sqrt at k = 0 would make the derivative in `spacing` NaN.
     transfer = jnp.exp(-0.5 * jnp.asarray(sigma) ** 2 * (ky[:, None] ** 2 + kx[None, :] ** 2))
     spectrum = jnp.fft.rfft2(field)
