@@ -7,6 +7,8 @@ fringe is `cos(k_col * j + k_row * i)`. Public wavevectors follow `docs/conventi
 
 import numpy as np
 
+from ..observe import spectral_peak, windowed_power_spectrum
+from ..physics import wavenumber_grid
 from ._types import Real
 
 
@@ -28,7 +30,8 @@ def spectral_peaks(
     """The `n_peaks` strongest non-DC peaks of a Hann-windowed power spectrum.
 
     Each peak is reported once (the half-plane with `k_col > 0`, or `k_col == 0` and
-    `k_row > 0`), refined to sub-bin precision by a parabola through the log power.
+    `k_row > 0`), refined to sub-bin precision by `observe.spectral_peak`; after each, its
+    neighbourhood (the window's leakage) and its mirror image are left out of the search.
 
     **Arguments:**
 
@@ -39,33 +42,23 @@ def spectral_peaks(
 
     **Returns:** `(n_peaks, 2)` wavevectors `(k_col, k_row)` in rad/px, strongest first.
     """
-    g = np.asarray(gray, dtype=np.float64)
-    h, w = g.shape
-    window = np.outer(np.hanning(h), np.hanning(w))
-    power = np.abs(np.fft.fft2((g - g.mean()) * window)) ** 2
-    f_row, f_col = np.meshgrid(np.fft.fftfreq(h), np.fft.fftfreq(w), indexing="ij")
-    cycles = np.hypot(f_row * h, f_col * w)
-    radius = np.hypot(f_row, f_col)
-    half_plane = (f_col > 0) | ((f_col == 0) & (f_row > 0))
+    power = windowed_power_spectrum(gray)
+    h, w = power.shape
+    kx, ky = wavenumber_grid((h, w), xp=np)
+    KX, KY = kx[None, :], ky[:, None]
+    cycles = np.hypot(KY * h, KX * w) / (2 * np.pi)
+    radius = np.hypot(KY, KX) / (2 * np.pi)
+    # k_row = -ky: rows run towards -y.
+    half_plane = (KX > 0) | ((KX == 0) & (KY < 0))
     allowed = half_plane & (cycles >= min_cycles) & (radius <= max_cycles_per_px)
-    log_power = np.log(power + 1e-30)
     peaks = []
     for _ in range(n_peaks):
-        candidates = np.where(allowed, power, -1.0)
-        r, c = np.unravel_index(np.argmax(candidates), power.shape)
-        if candidates[r, c] <= 0:
-            raise ValueError(f"found only {len(peaks)} spectral peaks, asked for {n_peaks}")
-
-        def vertex(m, z, p):
-            denominator = m - 2 * z + p
-            return 0.5 * (m - p) / denominator if denominator < 0 else 0.0
-
-        dr = vertex(log_power[(r - 1) % h, c], log_power[r, c], log_power[(r + 1) % h, c])
-        dc = vertex(log_power[r, (c - 1) % w], log_power[r, c], log_power[r, (c + 1) % w])
-        fr, fc = f_row[r, c] + dr / h, f_col[r, c] + dc / w
-        peaks.append((2 * np.pi * fc, 2 * np.pi * fr))
-        # Suppress the peak's neighbourhood (its window leakage) and its mirror image.
-        for sr, sc in ((fr, fc), (-fr, -fc)):
-            near = np.hypot((f_row - sr) * h, (f_col - sc) * w) < 3.0
-            allowed &= ~near
-    return np.asarray(peaks, dtype=np.float64).reshape(-1, 2)
+        try:
+            peak = spectral_peak(power, allowed)
+        except ValueError:
+            raise ValueError(f"found only {len(peaks)} spectral peaks, asked for {n_peaks}") from None
+        peaks.append(peak)
+        for sign in (1, -1):
+            near = np.hypot((KY - sign * peak[1]) * h, (KX - sign * peak[0]) * w) < 3.0 * 2 * np.pi
+            allowed = allowed & ~near
+    return to_index_wavevectors(np.asarray(peaks).reshape(-1, 2), 1.0)

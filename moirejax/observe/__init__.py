@@ -26,4 +26,5 @@ from ._observables import (
     RealBandPass as RealBandPass,
     white_noise_variance as white_noise_variance,
 )
+from ._peaks import spectral_peak as spectral_peak, windowed_power_spectrum as windowed_power_spectrum
 from ._reference import match_reference_geometry as match_reference_geometry

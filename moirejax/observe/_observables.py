@@ -229,7 +229,13 @@ def _peak_offset(xp, left, centre, right, size):
 
 
 def _peak_wavevectors(xp, windows, support, crop_starts, frame_shape, pixel):
-    """Spectral peak of every family inside its band support, refined to sub-bin (rad/mm)."""
+    """Spectral peak of every family inside its band support, refined to sub-bin (rad/mm).
+
+    Not `observe.spectral_peak`: this one runs inside the traced demodulation
+    (numpy or JAX), on the complex bins of the unwindowed DFT that the demodulator already
+    holds, where Jacobsen's three-bin estimate is unbiased and a parabola through the
+    Hann-windowed log power would need a second, windowed FFT of the frame.
+    """
     h, w = frame_shape
     families, rows, cols = windows.shape
     m, n = rows - 2, cols - 2

@@ -12,40 +12,26 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ..physics import Device
+from ..physics import Device, wavenumber_grid
+from ._peaks import spectral_peak, windowed_power_spectrum
 
 
 def measure_moire_wavevectors(frame: np.ndarray, device: Device, search: float = 0.6) -> np.ndarray:
     """Spectral peak nearest each nominal moiré wavevector, refined to sub-bin precision.
 
     Searches within `search * |K|` of the nominal `K` of each family (rad/mm, x right,
-    y up) on a Hann-windowed spectrum; a parabola through the log magnitude refines the
-    peak. Returns an array `(families, 2)`.
+    y up), and farther than `0.3 |K|` from DC, with `spectral_peak`. Returns an array
+    `(families, 2)`.
     """
-    frame = np.asarray(frame, dtype=np.float64)
-    h, w = frame.shape
+    power = windowed_power_spectrum(frame)
     dx = 1.0 / float(device.px_per_mm)
-    window = np.outer(np.hanning(h), np.hanning(w))
-    spectrum = np.abs(np.fft.fftshift(np.fft.fft2((frame - frame.mean()) * window)))
-    kx = np.fft.fftshift(np.fft.fftfreq(w, dx)) * 2 * np.pi
-    ky = -np.fft.fftshift(np.fft.fftfreq(h, dx)) * 2 * np.pi
-    KX, KY = np.meshgrid(kx, ky)
-    logs = np.log(spectrum + 1e-300)
+    kx, ky = wavenumber_grid(power.shape, dx, xp=np)
+    KX, KY = kx[None, :], ky[:, None]
     found = []
     for K in np.asarray(device.moire_wavevectors()):
         norm = float(np.hypot(*K))
         mask = (np.hypot(KX - K[0], KY - K[1]) < search * norm) & (np.hypot(KX, KY) > 0.3 * norm)
-        i, j = np.unravel_index(np.argmax(np.where(mask, spectrum, 0.0)), spectrum.shape)
-        i = min(max(i, 1), h - 2)
-        j = min(max(j, 1), w - 2)
-
-        def refine(lm, l0, lp):
-            denominator = lm - 2 * l0 + lp
-            return 0.0 if denominator == 0 else 0.5 * (lm - lp) / denominator
-
-        dj = refine(logs[i, j - 1], logs[i, j], logs[i, j + 1])
-        di = refine(logs[i - 1, j], logs[i, j], logs[i + 1, j])
-        found.append([kx[j] + dj * (kx[1] - kx[0]), ky[i] + di * (ky[1] - ky[0])])
+        found.append(spectral_peak(power, mask, dx))
     return np.asarray(found)
 
 
