@@ -19,7 +19,11 @@ import os
 from typing import Literal
 
 import cv2
+import jax
+import jax.numpy as jnp
+import lineax as lx
 import numpy as np
+import optimistix as optx
 
 from .._fileio import DataError, read_json, validate_json, write_json
 from ._types import Real
@@ -314,52 +318,44 @@ def _valid_assignment(grid: np.ndarray, index: np.ndarray, rows: int, cols: int)
     return len({(int(c), int(r)) for c, r in index}) == len(index)
 
 
+def _distortion_residuals(params: jax.Array, args: tuple[jax.Array, jax.Array]) -> jax.Array:
+    """Normalised image-space residuals of (homography, k1[, k2]); `params` holds the top 8
+    entries of the normalised mm -> undistorted px homography, then the radial terms."""
+    mm_norm, observed = args
+    g = jnp.append(params[:8], 1.0).reshape(3, 3)
+    homogeneous = mm_norm @ g[:, :2].T + g[None, :, 2]
+    d = homogeneous[:, :2] / homogeneous[:, 2:3]
+    r2 = jnp.sum(d * d, axis=-1, keepdims=True)
+    radial = params[8:]
+    scale = 1 + radial[0] * r2 + (radial[1] * r2 * r2 if radial.shape[0] > 1 else 0.0)
+    return d * scale - observed
+
+
 def _fit_with_distortion(
     px: np.ndarray, mm: np.ndarray, h0: np.ndarray, center: np.ndarray, radius: float, n_radial: int
 ) -> tuple[np.ndarray, float, float]:
-    """Levenberg-Marquardt fit of (homography, k1[, k2]) minimising image-space residuals."""
+    """Least-squares fit of (homography, k1[, k2]) minimising image-space residuals.
+
+    Optimistix's Levenberg-Marquardt from the distortion-free homography `h0`, in
+    coordinates normalised to order one (pixels about `center` over `radius`, mm over
+    their largest magnitude) and in float64 whatever JAX's default precision.
+    """
     scale_mm = np.max(np.abs(mm)) or 1.0
     to_px_norm = np.array([[1 / radius, 0, -center[0] / radius], [0, 1 / radius, -center[1] / radius], [0, 0, 1]])
     to_mm_norm = np.diag([1 / scale_mm, 1 / scale_mm, 1.0])
-    observed = (px - center) / radius
-    mm_norm = mm / scale_mm
     # g: normalised mm -> normalised undistorted px, with g[2, 2] = 1.
     g = to_px_norm @ np.linalg.inv(h0) @ np.linalg.inv(to_mm_norm)
     g = g / g[2, 2]
-    params = np.concatenate([g.ravel()[:8], np.zeros(n_radial)])
-
-    def residuals(p):
-        gm = np.append(p[:8], 1.0).reshape(3, 3)
-        d = _apply_h(gm, mm_norm)
-        r2 = np.sum(d * d, axis=-1, keepdims=True)
-        k1 = p[8] if n_radial > 0 else 0.0
-        k2 = p[9] if n_radial > 1 else 0.0
-        return (d * (1 + k1 * r2 + k2 * r2 * r2) - observed).ravel()
-
-    damping = 1e-3
-    r = residuals(params)
-    for _ in range(100):
-        jac = np.empty((r.size, params.size))
-        for j in range(params.size):
-            step = np.zeros_like(params)
-            step[j] = 1e-7
-            jac[:, j] = (residuals(params + step) - residuals(params - step)) / 2e-7
-        jtj, jtr = jac.T @ jac, jac.T @ r
-        candidate = params - np.linalg.solve(jtj + damping * np.diag(np.diag(jtj) + 1e-12), jtr)
-        r_new = residuals(candidate)
-        if r_new @ r_new < r @ r:
-            converged = (r @ r - r_new @ r_new) < 1e-14 * max(r @ r, 1e-30)
-            params, r, damping = candidate, r_new, damping / 3
-            if converged:
-                break
-        else:
-            damping *= 4
-            if damping > 1e8:
-                break
+    with jax.enable_x64(True):
+        start = jnp.asarray(np.concatenate([g.ravel()[:8], np.zeros(n_radial)]))
+        args = (jnp.asarray(mm / scale_mm), jnp.asarray((px - center) / radius))
+        solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12, linear_solver=lx.QR())
+        solution = optx.least_squares(_distortion_residuals, solver, start, args=args, max_steps=200, throw=False)
+        params = np.asarray(solution.value)
     g = np.append(params[:8], 1.0).reshape(3, 3)
     # undistorted px -> mm = inverse of (px_norm^-1 . g . mm_norm)
     mm_to_px = np.linalg.inv(to_px_norm) @ g @ to_mm_norm
-    k1 = float(params[8]) if n_radial > 0 else 0.0
+    k1 = float(params[8])
     k2 = float(params[9]) if n_radial > 1 else 0.0
     return np.linalg.inv(mm_to_px), k1, k2
 
