@@ -49,9 +49,11 @@ from ._geometry import (
 from ._optics import (
     background_radiance as background_radiance,
     binary_harmonics as binary_harmonics,
+    camera_response as camera_response,
     gaussian_mtf as gaussian_mtf,
     image_coordinates as image_coordinates,
     line_transmission as line_transmission,
+    separable_gaussian_blur as separable_gaussian_blur,
 )
 from ._render import (
     camera_noise as camera_noise,
@@ -65,5 +67,6 @@ from ._render import (
     render_deformed as render_deformed,
     render_frame as render_frame,
     render_frame_high as render_frame_high,
+    scene_radiance as scene_radiance,
     upper_grating_phase as upper_grating_phase,
 )
