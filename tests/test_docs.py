@@ -35,7 +35,7 @@ _OUTSIDE_PATTERNS = (
     "*.md",
     "docs/**/*.md",
     "docs/**/*.py",
-    "fits/**/*.md",
+    "moirejax/fits/**/*.md",
     "notebooks/*.ipynb",
     "notebooks/*.py",
     "notebooks/*.md",

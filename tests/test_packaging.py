@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "moirejax"
 
 # What the code loads at run time, relative to the package.
-RESOURCES = ["data_schema/*.schema.json", "fits/recipes/*.json"]
+RESOURCES = ["data_schema/*.schema.json", "fits/recipes/*.json", "fits/examples/*.json", "fits/examples/*.eqx"]
 
 
 def _run(argv: list[str], cwd: Path) -> str:
@@ -73,7 +73,7 @@ def environment(wheel, tmp_path_factory) -> Path:
 def test_wheel_holds_every_resource_and_the_licence(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
     expected = {f"moirejax/{p.relative_to(PACKAGE).as_posix()}" for pattern in RESOURCES for p in PACKAGE.glob(pattern)}
-    assert len(expected) >= 9, expected  # seven schemas and two recipes at the time of writing
+    assert len(expected) >= 12, expected  # seven schemas, two recipes and the example unit's three files
     assert expected <= names, f"missing from the wheel: {sorted(expected - names)}"
     dist_info = f"moirejax-{importlib.metadata.version('moirejax')}.dist-info"
     assert f"{dist_info}/licenses/LICENSE" in names
@@ -94,8 +94,9 @@ def test_installed_wheel_runs_outside_the_checkout(environment, tmp_path):
     version = _run([str(environment / "moirejax"), "--version"], cwd=tmp_path)
     assert version.strip() == f"moirejax {importlib.metadata.version('moirejax')}"
 
-    # Loads every schema and both named recipes through the installed package, and writes
-    # and reads back a device file (validated against its schema on the way in and out).
+    # Loads every schema, both named recipes and the example unit with its residual head
+    # through the installed package, and writes and reads back a device file (validated
+    # against its schema on the way in and out).
     script = """
 import importlib.resources, json, sys
 import jsonschema
@@ -108,7 +109,10 @@ for name in names:
 recipes = {name: mj.load_recipe(name).free for name in ("unit", "transfer")}
 mj.save_device("device.json", mj.preset("mid"))
 device = mj.load_device("device.json")
-print(json.dumps({"file": mj.__file__, "schemas": names, "recipes": recipes, "p1": float(device.p1)}))
+example = importlib.resources.files("moirejax").joinpath("fits", "examples", "mid-sim-unit3.json")
+unit, head = mj.load_calibrated(str(example))
+report = {"file": mj.__file__, "schemas": names, "recipes": recipes, "p1": float(device.p1)}
+print(json.dumps(report | {"example_E": float(unit.elastomer.E), "example_head": head is not None}))
 """
     report = json.loads(_run([str(environment / "python"), "-c", script], cwd=tmp_path))
     installed = Path(report["file"]).resolve()
@@ -117,3 +121,4 @@ print(json.dumps({"file": mj.__file__, "schemas": names, "recipes": recipes, "p1
     assert report["schemas"] == sorted(p.name for p in (PACKAGE / "data_schema").glob("*.schema.json"))
     assert "elastomer.E" in report["recipes"]["unit"] and "elastomer.E" in report["recipes"]["transfer"]
     assert report["p1"] == pytest.approx(float(mj.preset("mid").p1))
+    assert 0.8 < report["example_E"] < 0.9 and report["example_head"]

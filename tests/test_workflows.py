@@ -1,6 +1,7 @@
 """Calibrate, evaluate, transfer and import on small simulated datasets: outputs, files, failure paths."""
 
 import csv
+import importlib.resources
 import json
 import math
 import os
@@ -202,13 +203,11 @@ def test_readme_cli_reference_is_current():
     assert cli_reference() in page, "run `python -m moirejax.cli._docs` to regenerate the CLI reference in docs/cli.md"
 
 
-def test_fitted_preset_in_fits_loads_with_its_head():
-    from pathlib import Path
-
-    fits = Path(__file__).resolve().parent.parent / "fits"
-    device, head = mj.calibration._workflows.load_calibrated(fits / "mid-sim-unit3.json")
+def test_example_unit_in_the_package_loads_with_its_head():
+    example = importlib.resources.files("moirejax").joinpath("fits", "examples", "mid-sim-unit3.json")
+    device, head = mj.load_calibrated(str(example))
     assert head is not None and device.layout == mj.preset("mid").layout
-    calibration = json.loads((fits / "mid-sim-unit3.json").read_text())["calibration"]
+    calibration = json.loads(example.read_text())["calibration"]
     assert calibration["recipe"] == "unit" and set(calibration["uncertainty"]) == set(load_recipe("unit").free)
     # The simulated unit is softer than its design; the fit says so.
     assert 0.8 < float(device.elastomer.E) < 0.9
