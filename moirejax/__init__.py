@@ -11,6 +11,8 @@ from ._fileio import (
     atomic_write_bytes as atomic_write_bytes,
     atomic_write_text as atomic_write_text,
     DataError as DataError,
+    DataWarning as DataWarning,
+    OutputError as OutputError,
     read_json as read_json,
     write_json as write_json,
 )
