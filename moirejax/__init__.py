@@ -42,6 +42,7 @@ from .data import (
     import_recording as import_recording,
     ImportReport as ImportReport,
     open_dataset as open_dataset,
+    unit_frame as unit_frame,
 )
 from .design import (
     axis_ranges as axis_ranges,
