@@ -25,6 +25,7 @@ from .calibration import (
     fit_physical_parameters as fit_physical_parameters,
     format_metrics as format_metrics,
     heldout_ridge_r2 as heldout_ridge_r2,
+    identification_problems as identification_problems,
     invert_frames as invert_frames,
     load_calibrated as load_calibrated,
     load_recipe as load_recipe,
