@@ -11,6 +11,8 @@ from ._fileio import (
     atomic_write_bytes as atomic_write_bytes,
     atomic_write_text as atomic_write_text,
     DataError as DataError,
+    DataWarning as DataWarning,
+    OutputError as OutputError,
     read_json as read_json,
     write_json as write_json,
 )
@@ -23,6 +25,7 @@ from .calibration import (
     fit_physical_parameters as fit_physical_parameters,
     format_metrics as format_metrics,
     heldout_ridge_r2 as heldout_ridge_r2,
+    identification_problems as identification_problems,
     invert_frames as invert_frames,
     load_calibrated as load_calibrated,
     load_recipe as load_recipe,
@@ -40,6 +43,7 @@ from .data import (
     import_recording as import_recording,
     ImportReport as ImportReport,
     open_dataset as open_dataset,
+    unit_frame as unit_frame,
 )
 from .design import (
     axis_ranges as axis_ranges,

@@ -32,16 +32,18 @@ def test_design_flags_write_and_plot(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(
-    "argv, fragment",
+    "argv, fragment, code",
     [
-        (["--p1", "-0.3", "--p2", "0.3"], "p1"),
-        (["--p1", "0.35", "--p2", "0.3", "--a", "12", "--Z", "12"], "a < Z"),
-        (["--p1", "0.375", "--p2", "0.3", "--a", "3", "--Z", "12"], "infinite"),
-        (["--device", "/nonexistent/device.json"], "no such file"),
+        # A design the flags describe that cannot be built: a usage error (2).
+        (["--p1", "-0.3", "--p2", "0.3"], "p1", 2),
+        (["--p1", "0.35", "--p2", "0.3", "--a", "12", "--Z", "12"], "a < Z", 2),
+        (["--p1", "0.375", "--p2", "0.3", "--a", "3", "--Z", "12"], "infinite", 2),
+        # A file that cannot be read: bad input (3), naming the flag.
+        (["--device", "/nonexistent/device.json"], "no such file (given by --device)", 3),
     ],
 )
-def test_design_bad_input_is_one_clear_line(capsys, argv, fragment):
-    assert main(["design", *argv]) == 2
+def test_design_bad_input_is_one_clear_line(capsys, argv, fragment, code):
+    assert main(["design", *argv]) == code
     err = capsys.readouterr().err
     assert fragment in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -132,7 +132,7 @@ def test_calibrate_refuses_dataset_without_reference(tmp_path, datasets):
     simulate_dataset(tmp_path / "nocontactfree", nominal, "mixed", 6, seed=1, fidelity="model", progress=False)
     assert (
         main(["calibrate", "--data", str(tmp_path / "nocontactfree"), "--out", str(tmp_path / "x.json"), "--quiet"])
-        == 2
+        == 3
     )
 
 
@@ -150,8 +150,10 @@ def test_import_cli_round_trip(tmp_path, datasets, capsys):
     (tmp_path / "bad.csv").write_text("frame,fx,fy,fz,tx,ty\n000000.png,0,0,0,0,0\n")
     argv[4] = str(tmp_path / "bad.csv")
     argv[-1] = str(tmp_path / "imported2")
-    assert main(argv) == 2
-    assert "tz" in capsys.readouterr().err
+    assert main(argv) == 3
+    err = capsys.readouterr().err
+    assert "tz" in err and "(given by --wrench)" in err
+    assert not (tmp_path / "imported2").exists()
 
 
 @pytest.mark.usefixtures("float32")

@@ -16,6 +16,7 @@ from ._workflows import (
     dataset_reference as dataset_reference,
     evaluate as evaluate,
     heldout_ridge_r2 as heldout_ridge_r2,
+    identification_problems as identification_problems,
     invert_frames as invert_frames,
     load_calibrated as load_calibrated,
     ridge_baseline as ridge_baseline,

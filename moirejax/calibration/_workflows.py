@@ -1,18 +1,34 @@
 """The calibrate, evaluate and transfer jobs, from dataset folders to files and plots.
 
-Every output is written atomically and only at the end, so an interrupted job (Ctrl-C)
-leaves no half-written device file.
+Outputs are checked before the long work starts, and written as a set at the end: staged
+in a temporary folder beside them, then moved into place with the device file last, which
+records the SHA-256 of the head and report it belongs with. An interrupted job (Ctrl-C, a
+kill, a full disk) leaves the previous set as it was.
 """
 
+import hashlib
 import math
+import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
-from .._conventions import WRENCH_SCALE
-from .._fileio import DataError, read_json, write_json
-from ..data import Dataset
+from .._conventions import WRENCH_AXES, WRENCH_SCALE
+from .._fileio import (
+    ARGUMENT,
+    check_output_file,
+    check_output_folder,
+    commit_staged,
+    DataError,
+    DataWarning,
+    read_json,
+    sha256_file,
+    staging_folder,
+    write_json,
+)
+from ..data import Dataset, unit_frame
 from ..inverse import invert_frame, Inverter, Status
 from ..physics import Device, device_from_json, load_device, save_device
 from ._calibration import fit_physical_parameters, load_recipe, Recipe
@@ -21,11 +37,23 @@ from ._residual_head import head_features, load_head, ResidualHead, save_head, t
 
 
 def dataset_reference(dataset: Dataset, limit: int = 16) -> np.ndarray:
-    """Mean of up to `limit` contact-free frames: the unit's no-contact reference."""
+    """Mean of up to `limit` readable contact-free frames: the unit's no-contact reference
+    (an unreadable one is skipped with a [`DataWarning`][moirejax.DataWarning])."""
     if dataset.contact is None or not np.any(~dataset.contact):
         raise DataError(f"{dataset.path}: no contact-free frame (column 'contact' = 0) to use as the reference")
-    free = np.flatnonzero(~dataset.contact)[:limit]
-    return np.mean([dataset.frame(int(i)) for i in free], axis=0)
+    frames = []
+    for i in np.flatnonzero(~dataset.contact):
+        try:
+            frames.append(dataset.frame(int(i)))
+        except DataError as e:
+            # A truncated or corrupt frame is skipped; the next contact-free one serves.
+            warnings.warn(f"reference frame skipped: {e}", DataWarning, stacklevel=2)
+            continue
+        if len(frames) == limit:
+            break
+    if not frames:
+        raise DataError(f"{dataset.path}: none of its contact-free frames (column 'contact' = 0) can be read")
+    return np.mean(frames, axis=0)
 
 
 def invert_frames(inverter: Inverter, frames, *, progress: bool = True, desc: str = "invert") -> dict[str, np.ndarray]:
@@ -35,7 +63,8 @@ def invert_frames(inverter: Inverter, frames, *, progress: bool = True, desc: st
     cold = jnp.full(10, jnp.nan, dtype=inverter.device.p1.dtype)
     out: dict[str, list] = {k: [] for k in ("wrench", "sigma", "x0", "y0", "radius", "status")}
     for frame in tqdm(frames, desc=desc, unit="frame", disable=not progress):
-        estimate = invert_frame(inverter, jnp.asarray(frame), cold)
+        # uint8/uint16 frames (a camera's) are scaled to [0, 1], not read as saturated.
+        estimate = invert_frame(inverter, jnp.asarray(unit_frame(frame)), cold)
         out["wrench"].append(np.asarray(estimate.wrench))
         out["sigma"].append(np.asarray(estimate.sigma))
         out["x0"].append(float(estimate.contact.x0))
@@ -45,23 +74,88 @@ def invert_frames(inverter: Inverter, frames, *, progress: bool = True, desc: st
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def _save_head_beside(device_path: Path, head: ResidualHead | None) -> str | None:
-    """Write `head` next to the device file; returns the name the device file records."""
-    if head is None:
-        return None
-    path = device_path.with_suffix(".head.eqx")
-    save_head(path, head)
-    return path.name
+def _head_path(device_path: Path) -> Path:
+    return device_path.with_suffix(".head.eqx")
+
+
+def _report_dir(device_path: Path) -> Path:
+    stem = device_path.with_suffix("")
+    return stem.parent / (stem.name + "_report")
+
+
+def _check_fit_outputs(out: Path, *, report: bool) -> None:
+    """Fail before the fit, not after it, when the device, head or report cannot be written."""
+    check_output_file(out, argument="out")
+    check_output_file(_head_path(out), argument="out")
+    if report:
+        check_output_folder(_report_dir(out), argument="out")
+
+
+def _write_fit_set(
+    out: Path,
+    device: Device,
+    calibration: dict,
+    head: ResidualHead | None,
+    write_report: Callable[[Path], None] | None = None,
+) -> None:
+    """Write the device file, its residual head and (calibrate) its report folder as a set.
+
+    Everything is written and flushed in a staging folder beside `out`; then the report
+    folder, the head and last the device file are moved into place by renames. The device
+    file records the SHA-256 of every other file of the set (`calibration.files`), which
+    [`load_calibrated`][] checks: a set left out of step (a kill between two of those
+    renames) is refused by name, never used. An interruption before the renames, which is
+    nearly all of the time, leaves the previous set as it was.
+    """
+    with staging_folder(out) as staging:
+        files: dict[str, str] = {}
+        moves = []
+        if write_report is not None:
+            report = _report_dir(out)
+            write_report(staging / report.name)
+            files[f"{report.name}/metrics.json"] = sha256_file(staging / report.name / "metrics.json")
+            moves.append((staging / report.name, report))
+        head_name = None
+        if head is not None:
+            head_name = _head_path(out).name
+            save_head(staging / head_name, head)
+            for name in (head_name, head_name + ".json"):
+                files[name] = sha256_file(staging / name)
+                moves.append((staging / name, out.parent / name))
+        calibration = {**calibration, "residual_head": head_name, "files": files}
+        save_device(staging / out.name, device, extra={"calibration": calibration})
+        moves.append((staging / out.name, out))
+        commit_staged(staging, moves)
 
 
 def load_calibrated(device_path: str | Path) -> tuple[Device, ResidualHead | None]:
-    """A device file and, when its calibration names one, its residual head."""
+    """A device file and, when its calibration names one, its residual head.
+
+    The head must be the one the device file records (`calibration.files` holds its
+    SHA-256), else [`DataError`][] names both files. A calibration written flagged (its
+    frames could not identify it; `calibrate --force`) loads with a
+    [`DataWarning`][moirejax.DataWarning].
+    """
     device_path = Path(device_path)
     obj = read_json(device_path, "device")
     device = device_from_json(obj, source=str(device_path))
-    head_name = obj.get("calibration", {}).get("residual_head")
-    head = load_head(device_path.parent / head_name) if head_name else None
-    return device, head
+    calibration = obj.get("calibration", {})
+    for problem in calibration.get("flagged", []):
+        warnings.warn(f"{device_path}: flagged calibration: {problem}", DataWarning, stacklevel=2)
+    head_name = calibration.get("residual_head")
+    if not head_name:
+        return device, None
+    recorded = calibration.get("files", {})
+    for name in (head_name, head_name + ".json"):
+        path = device_path.parent / name
+        if not path.is_file():
+            raise DataError(f"{path}: no such file, but {device_path} names it as its residual head")
+        if name in recorded and sha256_file(path) != recorded[name]:
+            raise DataError(
+                f"{path}: is not the file {device_path} was written with (its SHA-256 differs): the set is out of "
+                "step, e.g. after an interrupted calibrate; calibrate again"
+            )
+    return device, load_head(device_path.parent / head_name)
 
 
 def _apply_head(head: ResidualHead | None, result: dict[str, np.ndarray]) -> np.ndarray:
@@ -216,9 +310,9 @@ def _write_report(
     out_dir: Path, metrics: dict, true, estimate, sigma, *, title: str, extra: dict | None = None
 ) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_json(out_dir / "metrics.json", _finite_or_null({**metrics, **(extra or {})}), "metrics")
     plot_parity(out_dir / "parity.png", true, estimate, sigma, title=title)
     plot_residuals(out_dir / "residuals.png", true, estimate, title=title)
+    write_json(out_dir / "metrics.json", _finite_or_null({**metrics, **(extra or {})}), "metrics")
 
 
 def _finite_or_null(obj):
@@ -233,6 +327,36 @@ def _finite_or_null(obj):
 
 
 MIN_HEAD_FRAMES = 50
+MIN_CALIBRATION_FRAMES = 10
+# An axis whose loads spread less than this fraction of its calibrated range is not excited:
+# the frames say nothing about it.
+_EXCITATION_FRACTION = 1e-3
+
+
+def identification_problems(frames: np.ndarray, wrenches: np.ndarray, reference: np.ndarray) -> dict:
+    """What a set of calibration frames cannot identify, checked before the fit.
+
+    `refuse` lists reasons no fit can be trusted: fewer than
+    `MIN_CALIBRATION_FRAMES` distinct images (identical frames, a frozen camera), fewer
+    than that many frames that differ from the no-contact reference at all, or no axis
+    whose load varies. `axes_not_excited` names the axes whose load does not vary
+    (less than 0.1% of the calibrated range): the fit cannot read them.
+    """
+    n = len(frames)
+    refuse = []
+    distinct = len({hashlib.sha1(np.ascontiguousarray(frame)).digest() for frame in frames})
+    if distinct < MIN_CALIBRATION_FRAMES:
+        refuse.append(
+            f"only {distinct} distinct images among {n} frames in contact (identical frames cannot identify a fit)"
+        )
+    changed = sum(bool(np.any(frame != reference)) for frame in frames)
+    if changed < MIN_CALIBRATION_FRAMES:
+        refuse.append(f"only {changed} of {n} frames in contact differ from the no-contact reference")
+    spread = np.std(np.asarray(wrenches, float), axis=0) / WRENCH_SCALE
+    not_excited = [axis for axis, s in zip(WRENCH_AXES, spread) if not s > _EXCITATION_FRACTION]
+    if len(not_excited) == len(WRENCH_AXES):
+        refuse.append("no axis's load varies across the frames")
+    return {"refuse": refuse, "axes_not_excited": not_excited}
 
 
 def calibrate(
@@ -244,18 +368,41 @@ def calibrate(
     recipe: Recipe | str | Path = "unit",
     baseline_sizes: tuple[int, ...] = (20, 100, 500),
     progress: bool = True,
+    force: bool = False,
 ) -> dict:
-    """`moirejax calibrate`: fit a unit, train its residual head, write device, head and report."""
+    """`moirejax calibrate`: fit a unit, train its residual head, write device, head and report.
+
+    The outputs are checked before the fit, and written as a set after it (see
+    `_write_fit_set`). Frames that cannot identify a fit ([`identification_problems`][]:
+    identical images, no visible load, no varying load) are refused with a
+    [`DataError`][] before the fit, unless `force`; a forced calibration, one with axes
+    the frames do not excite, and one that reads an excited axis worse than the mean on its
+    own frames (R² < 0) are written flagged: the reasons go in `calibration.flagged` of the
+    device file (which then loads with a warning) and in the report's `verdict`.
+
+    **Raises:** [`DataError`][] for unusable data, [`OutputError`][moirejax.OutputError]
+    (before the fit) for outputs that cannot be written.
+    """
     out = Path(out)
+    _check_fit_outputs(out, report=True)
     recipe = load_recipe(recipe)
     dataset = Dataset(data)
     nominal = load_device(nominal_path) if nominal_path else device_from_json(dataset.device)
     reference = dataset_reference(dataset)
     idx = _select(dataset, max_frames)
-    if len(idx) < 10:
-        raise DataError(f"{data}: only {len(idx)} frames in contact; calibration needs at least 10")
+    if len(idx) < MIN_CALIBRATION_FRAMES:
+        raise DataError(
+            f"{data}: only {len(idx)} frames in contact; calibration needs at least {MIN_CALIBRATION_FRAMES}"
+        )
     frames = np.stack([dataset.frame(int(i)) for i in idx])
     wrenches = dataset.wrenches[idx]
+    identification = identification_problems(frames, wrenches, reference)
+    if identification["refuse"] and not force:
+        raise DataError(
+            f"{data}: these frames cannot identify a calibration: {'; '.join(identification['refuse'])} "
+            f"(pass {ARGUMENT} to write one anyway, flagged)",
+            argument="force",
+        )
     result = fit_physical_parameters(nominal, reference, frames, wrenches, recipe, progress=progress)
     inverter = Inverter(result.device, reference=reference, match_reference=False)
     physical = invert_frames(inverter, frames, progress=progress, desc="invert calibration frames")
@@ -272,45 +419,68 @@ def calibrate(
     metrics_physics = wrench_metrics(wrenches, physical["wrench"], physical["sigma"])
     metrics = wrench_metrics(wrenches, corrected, physical["sigma"])
     baselines = cross_validated_ridge_r2(frames, wrenches, reference, baseline_sizes)
-    report_dir = out.with_suffix("")
-    report_dir = report_dir.parent / (report_dir.name + "_report")
+    report_dir = _report_dir(out)
     parameters = _parameter_table(nominal, fitted_device, result.uncertainty, dataset.true_device)
-    _write_report(
-        report_dir,
-        metrics,
-        wrenches,
-        corrected,
-        physical["sigma"],
-        title=f"calibration fit ({len(idx)} frames, in-sample)",
-        extra={
-            "physics_only": metrics_physics,
-            "residual_head": head_record,
-            "parameters": parameters,
-            "tilt_matrix": tilt.tolist(),
-            "tilt_matrix_r2": tilt_r2,
-            "ridge_baseline_r2_crossvalidated": baselines,
-            "verdict": calibration_verdict(metrics, baselines, parameters, recipe),
-            "history": result.history,
-            "recipe": recipe.to_json(),
-        },
-    )
-    _plot_parameters(report_dir / "parameters.png", parameters)
-    head_name = _save_head_beside(out, head)
+    worse_than_mean = [
+        axis
+        for axis in WRENCH_AXES
+        if axis not in identification["axes_not_excited"] and not metrics["r2"][axis] >= 0.0
+    ]
+    flagged = [f"forced past: {reason}" for reason in identification["refuse"]]
+    if identification["axes_not_excited"]:
+        flagged.append(
+            f"axes the frames do not load, so not identified: {', '.join(identification['axes_not_excited'])}"
+        )
+    if worse_than_mean:
+        flagged.append(
+            f"axes read worse than their mean on the calibration's own frames (R2 < 0): {', '.join(worse_than_mean)}"
+        )
+    verdict = {
+        **calibration_verdict(metrics, baselines, parameters, recipe),
+        "identified": not flagged,
+        "flagged": flagged,
+        "axes_not_excited": identification["axes_not_excited"],
+        "axes_worse_than_mean": worse_than_mean,
+    }
+    for problem in flagged:
+        warnings.warn(f"{out}: flagged calibration: {problem}", DataWarning, stacklevel=2)
+
+    def write_report(folder: Path) -> None:
+        _write_report(
+            folder,
+            metrics,
+            wrenches,
+            corrected,
+            physical["sigma"],
+            title=f"calibration fit ({len(idx)} frames, in-sample)",
+            extra={
+                "physics_only": metrics_physics,
+                "residual_head": head_record,
+                "parameters": parameters,
+                "tilt_matrix": tilt.tolist(),
+                "tilt_matrix_r2": tilt_r2,
+                "ridge_baseline_r2_crossvalidated": baselines,
+                "verdict": verdict,
+                "history": result.history,
+                "recipe": recipe.to_json(),
+            },
+        )
+        _plot_parameters(folder / "parameters.png", parameters)
+
     calibration = {
         "dataset": str(data),
         "recipe": recipe.name,
         "uncertainty": result.uncertainty,
-        "residual_head": head_name,
         "metrics": {"r2": metrics["r2"], "mae": metrics["mae"]},
+        **({"flagged": flagged} if flagged else {}),
     }
-    # The device file is written last: it is what marks a calibration as complete.
-    save_device(out, fitted_device, extra={"calibration": calibration})
+    _write_fit_set(out, fitted_device, calibration, head, write_report)
     return {
         "metrics": metrics,
         "physics_only": metrics_physics,
         "parameters": parameters,
         "baselines": baselines,
-        "verdict": calibration_verdict(metrics, baselines, parameters, recipe),
+        "verdict": verdict,
         "report": str(report_dir),
     }
 
@@ -365,6 +535,7 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
     With a residual head, the metrics are of the corrected wrench and `physics_only`
     holds those of the physical model alone (also in `metrics.json`).
     """
+    out_dir = check_output_folder(out_dir, argument="out_dir")
     device, head = load_calibrated(device_path)
     dataset = Dataset(data)
     reference = dataset_reference(dataset)
@@ -378,15 +549,20 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
     extra: dict = {"status_counts": statuses}
     if head is not None:
         extra["physics_only"] = wrench_metrics(truth, result["wrench"], result["sigma"])
-    _write_report(
-        Path(out_dir),
-        metrics,
-        truth,
-        wrench,
-        result["sigma"],
-        title=f"evaluation on {Path(data).name}",
-        extra=extra,
-    )
+    # Staged beside the outputs and moved in with metrics.json last: a rerun interrupted
+    # part way leaves the previous report whole.
+    with staging_folder(out_dir / "metrics.json") as staging:
+        _write_report(
+            staging / "report",
+            metrics,
+            truth,
+            wrench,
+            result["sigma"],
+            title=f"evaluation on {Path(data).name}",
+            extra=extra,
+        )
+        names = ("parity.png", "residuals.png", "metrics.json")
+        commit_staged(staging, [(staging / "report" / name, out_dir / name) for name in names])
     return {**metrics, **({"physics_only": extra["physics_only"]} if head is not None else {})}
 
 
@@ -406,6 +582,7 @@ def transfer(
     The frames are the `max_frames` that span the load space best ([`spanning_frames`][]).
     """
     from_path, out = Path(from_path), Path(out)
+    _check_fit_outputs(out, report=False)
     recipe = load_recipe(recipe)
     device, head = load_calibrated(from_path)
     dataset = Dataset(data)
@@ -433,15 +610,13 @@ def transfer(
         }
         if not head_check["kept"]:
             head = None
-    head_name = _save_head_beside(out, head)
     calibration = {
         "dataset": str(data),
         "recipe": recipe.name,
         "uncertainty": result.uncertainty,
-        "residual_head": head_name,
         **({"residual_head_check": head_check} if head_check else {}),
     }
-    save_device(out, result.device, extra={"calibration": calibration})
+    _write_fit_set(out, result.device, calibration, head)
     return {"uncertainty": result.uncertainty, "frames": len(idx), "residual_head_check": head_check}
 
 

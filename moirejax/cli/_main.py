@@ -6,9 +6,29 @@ import json
 import math
 import os
 import sys
+import warnings
 from collections.abc import Sequence
+from pathlib import Path
 
-from .._fileio import DataError
+from .._fileio import check_output_file, check_output_folder, DataError, DataWarning, OutputError
+from ._errors import COMMAND_LINE, run_command
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _check_new_folder(path: str, overwrite: bool) -> None:
+    """A dataset folder to write: writable, and empty unless --overwrite (checked before any work)."""
+    folder = check_output_folder(path, argument="out")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise OutputError(f"{folder}: folder is not empty; pass {{argument}} to replace it", argument="overwrite")
 
 
 def _add_device_arguments(parser: argparse.ArgumentParser, *, design_flags: bool = False) -> None:
@@ -60,7 +80,7 @@ def _device_from_args(args: argparse.Namespace):
         n = 1 if args.layout == "lines" else 2
         obj["optics"]["phase1"] = [0.0] * n
         obj["optics"]["phase2"] = [0.0] * n
-    return device_from_json(obj, source="command line")
+    return device_from_json(obj, source=COMMAND_LINE)
 
 
 # ---------------------------------------------------------------------------------------
@@ -70,6 +90,9 @@ def _cmd_design(args: argparse.Namespace) -> int:
     from ..design import design_table, format_design_table, plot_design_maps
     from ..physics import save_device
 
+    for flag in ("write", "plot", "observability_plot"):
+        if getattr(args, flag):
+            check_output_file(getattr(args, flag), argument=flag)
     device = _device_from_args(args)
     table = design_table(device)
     if args.sensitivity or args.observability or args.optimise:
@@ -115,6 +138,7 @@ def _cmd_design(args: argparse.Namespace) -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from ..simulate import simulate_dataset
 
+    _check_new_folder(args.out, args.overwrite)
     device = _device_from_args(args)
     out = simulate_dataset(
         args.out, device, args.protocol, args.n, seed=args.seed, fidelity=args.fidelity, overwrite=args.overwrite
@@ -128,7 +152,13 @@ def _cmd_import(args: argparse.Namespace) -> int:
     from ..data import import_recording
     from ..physics import load_device
 
-    load_device(args.device)  # validate the device before converting thousands of frames
+    # Validate the device and the outputs before converting thousands of frames.
+    if not Path(args.frames).is_dir():
+        raise DataError(f"{args.frames}: no such folder")
+    if not Path(args.wrench).is_file():
+        raise DataError(f"{args.wrench}: no such file")
+    load_device(args.device)
+    _check_new_folder(args.out, args.overwrite)
     report = import_recording(
         args.frames, args.wrench, args.device, args.out, skip_bad=args.skip_bad, overwrite=args.overwrite
     )
@@ -136,28 +166,47 @@ def _cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-def _inverter_for(device, source, reference_path):
-    import numpy as np
-
-    from ..inverse import find_reference, Inverter, load_reference_image
+def _reference_for(device, source, reference_path):
+    """The no-contact reference frame (or None) and a line saying where it came from."""
+    from ..inverse import find_reference, load_reference_image
 
     shape = (device.height, device.width)
     if reference_path:
+        if not Path(reference_path).is_file():
+            raise DataError(f"{reference_path}: no such file")
         reference, note = load_reference_image(reference_path), f"reference: {reference_path}"
-    else:
-        reference, note = find_reference(source, shape)
-    if reference is not None and reference.shape != shape:
-        raise ValueError(f"reference frame is {reference.shape}, device expects {shape}")
-    print(note + ("" if reference is not None else " (using the model's own no-load prediction)"), file=sys.stderr)
-    return Inverter(device, reference=None if reference is None else np.asarray(reference))
+        if reference.shape != shape:
+            raise DataError(
+                f"{reference_path}: reference frame is {reference.shape[0]}x{reference.shape[1]}, "
+                f"the device expects {shape[0]}x{shape[1]}"
+            )
+        return reference, note
+    reference, note = find_reference(source, shape)
+    if reference is None:
+        warnings.warn(
+            f"{note}. Inverting against the model's own no-load prediction, which is right only for the unit the "
+            "device file describes: frames of another unit (or the same unit after a change) give wrong wrenches "
+            "without any error. Give --reference IMAGE, a no-contact frame of this unit.",
+            DataWarning,
+            stacklevel=2,
+        )
+    return reference, note
 
 
 def _cmd_invert(args: argparse.Namespace) -> int:
-    from ..calibration import load_calibrated
-    from ..inverse import invert_recording
+    import numpy as np
 
+    from ..calibration import load_calibrated
+    from ..inverse import check_source, invert_recording, Inverter
+
+    # Everything that can be checked is checked before the inversion is compiled.
     device, head = load_calibrated(args.device)
-    inverter = _inverter_for(device, args.data, args.reference)
+    check_source(args.data)
+    check_output_file(args.out, argument="out")
+    reference, note = _reference_for(device, args.data, args.reference)
+    if reference is not None:
+        print(note, file=sys.stderr)
+    inverter = Inverter(device, reference=None if reference is None else np.asarray(reference))
     counts = invert_recording(inverter, args.data, args.out, batch=args.batch, progress=not args.quiet, head=head)
     print(f"wrote {args.out}: " + ", ".join(f"{n} {status}" for status, n in sorted(counts.items())))
     return 0
@@ -176,6 +225,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         recipe=recipe,
         progress=not args.quiet,
+        force=args.force,
     )
     print(format_metrics(summary["physics_only"], title="physics only (calibration frames)"))
     print(format_metrics(summary["metrics"], title="with residual head (calibration frames)"))
@@ -234,6 +284,19 @@ def _cmd_live(args: argparse.Namespace) -> int:
     from ..live import format_summary, parse_sink, run_live
 
     device, _ = load_calibrated(args.device)
+    source = args.source
+    if source != "sim" and not source.isdigit() and "://" not in source and "!" not in source:
+        if not Path(source).exists():
+            raise DataError(f"{source}: not 'sim', a camera index, a URL, a folder or a video file")
+        if Path(source).is_file():
+            from ..inverse import check_source
+
+            check_source(source)
+    if args.record:
+        check_output_file(args.record, argument="record")
+    for spec in args.sink or []:
+        if spec not in ("-", "stdout") and not spec.lower().startswith("udp://"):
+            check_output_file(spec, argument="sink")
     sinks = [parse_sink(spec) for spec in (args.sink or ["-"])]
     try:
         summary = run_live(
@@ -259,6 +322,7 @@ def _cmd_cap_removal(args: argparse.Namespace) -> int:
     from ..calibration import load_calibrated
     from ..live import plot_timeline, run_cap_removal
 
+    check_output_file(args.out, argument="out")
     device, _ = load_calibrated(args.device) if args.device else (None, None)
     if device is None:
         from ..physics import preset
@@ -273,6 +337,7 @@ def _cmd_cap_removal(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from ._demo import run_demo
 
+    check_output_folder(args.out, argument="out")
     return run_demo(out=args.out, smoke=args.smoke)
 
 
@@ -283,6 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Design, simulate, calibrate and invert moire visuotactile sensors.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {importlib.metadata.version('moirejax')}")
+    parser.add_argument("--debug", action="store_true", help=_DEBUG_HELP)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("design", help="geometry and sensitivity table of a design")
@@ -296,7 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--optimise", action="store_true", help="minimise the worst-axis relative bound (--write saves the optimum)"
     )
-    p.add_argument("--steps", type=int, default=300, help="optimiser steps")
+    p.add_argument("--steps", type=_positive_int, default=300, help="optimiser steps")
     p.add_argument("--min-pitch", type=float, default=0.15, help="smallest pitch the laser can cut, mm")
     p.add_argument("--min-fringes", type=float, default=4.0, help="fewest moire fringes across the frame")
     p.add_argument(
@@ -317,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="render a dataset of a simulated unit under a load protocol")
     _add_device_arguments(p)
     p.add_argument("--protocol", choices=["paper", "mixed", "sequence", "none"], default="paper")
-    p.add_argument("--n", type=int, default=500, help="number of frames")
+    p.add_argument("--n", type=_positive_int, default=500, help="number of frames")
     p.add_argument("--out", required=True, metavar="DIR", help="dataset folder to write")
     p.add_argument("--seed", type=int, default=0, help="draws the unit's deviations, the loads and the noise")
     p.add_argument("--fidelity", choices=["model", "high"], default="high")
@@ -330,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", required=True, metavar="FILE", help="device JSON of the unit")
     p.add_argument("--out", required=True, metavar="DATASET")
     p.add_argument("--skip-bad", action="store_true", help="skip missing or unreadable frames (listed)")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing dataset in DATASET")
     p.set_defaults(run=_cmd_import)
 
     p = sub.add_parser("invert", help="turn every frame of a recording into a wrench with uncertainty")
@@ -338,7 +404,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, metavar="SOURCE", help="dataset folder, video file or folder of frames")
     p.add_argument("--out", required=True, metavar="CSV", help="output wrench CSV")
     p.add_argument("--reference", metavar="IMAGE", help="no-contact frame of this unit (default: from the dataset)")
-    p.add_argument("--batch", type=int, default=1, help="invert N frames at once (throughput; no warm start)")
+    p.add_argument(
+        "--batch", type=_positive_int, default=1, help="invert N frames at once, N >= 1 (throughput; no warm start)"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(run=_cmd_invert)
 
@@ -346,14 +414,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", metavar="NOMINAL", help="nominal device JSON (default: the dataset's)")
     p.add_argument("--data", required=True, metavar="DATASET")
     p.add_argument("--out", required=True, metavar="FIT.json", help="fitted device; head and report go beside it")
-    p.add_argument("--max-frames", type=int, default=500)
+    p.add_argument("--max-frames", type=_positive_int, default=500)
     p.add_argument(
         "--recipe",
         default="unit",
         metavar="NAME|FILE",
         help="what to fit: a named recipe of moirejax/fits/recipes/ or a JSON file",
     )
-    p.add_argument("--rounds", type=int, help="alternations of parameter and latent solves (default: the recipe's)")
+    p.add_argument(
+        "--rounds", type=_positive_int, help="alternations of parameter and latent solves (default: the recipe's)"
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write a calibration its frames cannot identify (identical frames, no load), flagged, instead of refusing",
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(run=_cmd_calibrate)
 
@@ -368,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--from", dest="from_", required=True, metavar="FIT.json")
     p.add_argument("--data", required=True, metavar="DATASET", help="frames of the new unit")
     p.add_argument("--out", required=True, metavar="FIT_B.json")
-    p.add_argument("--max-frames", type=int, default=20)
+    p.add_argument("--max-frames", type=_positive_int, default=20)
     p.add_argument("--recipe", default="transfer", metavar="NAME|FILE", help="what to refit (default: transfer)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(run=_cmd_transfer)
@@ -382,7 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SPEC",
         help="- (stdout, default), a file path, or udp://host:port; repeatable",
     )
-    p.add_argument("--max-frames", type=int, help="stop after N frames")
+    p.add_argument("--max-frames", type=_positive_int, help="stop after N frames")
     p.add_argument("--record", metavar="OUT.mp4", help="write an annotated video")
     p.add_argument("--plot", action="store_true", help="live strip chart when a display exists")
     p.add_argument("--rectification", metavar="RECT.json", help="pixel-to-mm rectification of the camera")
@@ -396,7 +471,7 @@ def build_parser() -> argparse.ArgumentParser:
         "cap-removal", help="the paper's cap-removal cycle against the simulated sensor, with a timeline plot"
     )
     p.add_argument("--device", metavar="FIT.json", help="device (default: the Mid preset)")
-    p.add_argument("--cycles", type=int, default=3)
+    p.add_argument("--cycles", type=_positive_int, default=3)
     p.add_argument("--out", default="cap_removal.png", metavar="FILE.png")
     p.set_defaults(run=_cmd_cap_removal)
 
@@ -404,7 +479,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="moirejax-demo", help="output folder (default: moirejax-demo)")
     p.add_argument("--smoke", action="store_true", help="tiny sizes, for tests")
     p.set_defaults(run=_cmd_demo)
+    for command in sub.choices.values():
+        # SUPPRESS: given before the command or after it, `--debug` is seen either way.
+        command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=_DEBUG_HELP)
     return parser
+
+
+_DEBUG_HELP = "on an error, print the Python traceback too (see docs/errors.md for the exit codes)"
 
 
 def use_compilation_cache() -> str | None:
@@ -429,18 +510,17 @@ def use_compilation_cache() -> str | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `moirejax` command. Returns the process exit status."""
+    """Entry point of the `moirejax` command. Returns the process exit status.
+
+    The exit codes and the error policy are in `moirejax/cli/_errors.py` and
+    docs/errors.md: 0 success, 1 internal error, 2 usage, 3 bad input, 4 unwritable
+    output, 130 interrupted; one line per failure, a traceback only with `--debug`.
+    """
     parser = build_parser()
+    # A usage error exits here with argparse's status 2 and its usage line.
     args = parser.parse_args(argv)
     use_compilation_cache()
-    try:
-        return args.run(args)
-    except (ValueError, DataError, FileNotFoundError) as e:
-        print(f"moirejax {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"moirejax {args.command}: interrupted", file=sys.stderr)
-        return 130
+    return run_command(args.command, args.run, args)
 
 
 if __name__ == "__main__":

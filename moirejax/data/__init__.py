@@ -11,4 +11,5 @@ from ._dataset import (
     import_recording as import_recording,
     ImportReport as ImportReport,
     open_dataset as open_dataset,
+    unit_frame as unit_frame,
 )

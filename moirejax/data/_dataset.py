@@ -30,15 +30,18 @@ from typing import Any, Literal, NamedTuple
 import cv2
 import numpy as np
 import numpy.typing as npt
-from jaxtyping import Bool, Float32, Float64, Int64
+from jaxtyping import Bool, Float, Float32, Float64, Int64
 from tqdm import tqdm
 
 from .._conventions import WRENCH_AXES, WRENCH_CONVENTION
 from .._fileio import (
+    ARGUMENT,
     atomic_write_bytes,
     atomic_write_text,
+    check_output_folder,
     DataError,
     read_json,
+    staging_folder,
     validate_json,
     write_json,
 )
@@ -268,6 +271,24 @@ def _quantise(frame: npt.ArrayLike, bit_depth: int) -> np.ndarray:
     return np.round(scaled).astype(dtype)
 
 
+def unit_frame(frame: npt.ArrayLike) -> Float[np.ndarray, "h w"]:
+    """A frame in [0, 1], the range the inversion reads: uint8 frames are divided by 255 and
+    uint16 frames by 65535 into float32 (as a camera or `cv2.imread` delivers them); float
+    frames are returned as they are.
+
+    **Raises:** `ValueError` for a frame that is not 2-D, or not of an unsigned 8/16-bit or
+    float type.
+    """
+    array = np.asarray(frame)
+    if array.ndim != 2:
+        raise ValueError(f"a frame must be a 2-D (height, width) array, got shape {array.shape}")
+    if array.dtype in (np.uint8, np.uint16):
+        return array.astype(np.float32) / np.float32(_MAXVAL[8 * array.dtype.itemsize])
+    if array.dtype.kind != "f":
+        raise ValueError(f"frames must be float arrays in [0, 1] or uint8/uint16 arrays, got {array.dtype}")
+    return array
+
+
 def _encode_png(image: np.ndarray) -> bytes:
     ok, buffer = cv2.imencode(".png", image)
     if not ok:
@@ -284,7 +305,7 @@ def _check_output_dir(path: Path, overwrite: bool) -> bool:
         raise DataError(f"{path}: exists and is not a folder")
     occupied = path.is_dir() and any(path.iterdir())
     if occupied and not overwrite:
-        raise DataError(f"{path}: folder is not empty; pass overwrite=True to replace it")
+        raise DataError(f"{path}: folder is not empty; pass {ARGUMENT} to replace it", argument="overwrite")
     return occupied
 
 
@@ -772,6 +793,7 @@ def import_recording(
             raise DataError(f"{source_path}: the recording must not lie inside out_dir {out_dir}")
     if not frames_dir.is_dir():
         raise DataError(f"{frames_dir}: no such folder")
+    check_output_folder(out_dir, argument="out_dir")
     _check_output_dir(out_dir, overwrite)
     table = _read_wrench_table(wrench_csv, strict=False)
     if not table.frames:
@@ -798,68 +820,72 @@ def import_recording(
     first_shape: tuple[int, int] | None = None
     n_written = 0
     progress_bar = tqdm(total=len(table.frames), disable=not progress, unit="frame", desc="import")
-    try:
-        for i in range(len(table.frames)):
-            progress_bar.update(1)
-            name, row = table.frames[i], table.rows[i]
-            try:
-                image = _load_gray(frames_dir / name)
-            except DataError as e:
-                problems.append((row, name, str(e)))
-                continue
-            if first_shape is None:
-                first_shape = image.shape
-            if image.shape != first_shape:
-                problems.append(
-                    (
-                        row,
-                        name,
-                        f"{frames_dir / name}: image size {image.shape[0]}x{image.shape[1]} "
-                        f"differs from the first frame's {first_shape[0]}x{first_shape[1]}",
+    # The dataset is written in a folder beside out_dir and moved into place once complete:
+    # a failed or interrupted import leaves nothing behind, and out_dir as it was.
+    with staging_folder(out_dir) as staging:
+        try:
+            for i in range(len(table.frames)):
+                progress_bar.update(1)
+                name, row = table.frames[i], table.rows[i]
+                try:
+                    image = _load_gray(frames_dir / name)
+                except DataError as e:
+                    problems.append((row, name, str(e)))
+                    continue
+                if first_shape is None:
+                    first_shape = image.shape
+                if image.shape != first_shape:
+                    problems.append(
+                        (
+                            row,
+                            name,
+                            f"{frames_dir / name}: image size {image.shape[0]}x{image.shape[1]} "
+                            f"differs from the first frame's {first_shape[0]}x{first_shape[1]}",
+                        )
                     )
+                    continue
+                if not np.all(np.isfinite(table.wrenches[i])):
+                    problems.append(
+                        (row, name, f"{wrench_csv} row {row}: wrench {table.wrenches[i].tolist()} is not finite")
+                    )
+                    continue
+                if problems and not skip_bad:
+                    # The import will fail; keep checking so that every bad frame is reported.
+                    continue
+                if writer is None:
+                    writer = DatasetWriter(
+                        staging / "dataset",
+                        device=device,
+                        frame_shape=first_shape,
+                        bit_depth=bit_depth or 8 * image.dtype.itemsize,
+                        source=source,
+                        fps=fps,
+                        protocol=protocol,
+                    )
+                writer.add(
+                    image,
+                    table.wrenches[i],
+                    name=out_names[i],
+                    t=None if table.t is None else float(table.t[i]),
+                    contact=None if table.contact is None else bool(table.contact[i]),
                 )
-                continue
-            if not np.all(np.isfinite(table.wrenches[i])):
-                problems.append(
-                    (row, name, f"{wrench_csv} row {row}: wrench {table.wrenches[i].tolist()} is not finite")
+                n_written += 1
+            if problems and (not skip_bad or writer is None):
+                listing = "\n".join(f"  row {row}: {message}" for row, _, message in problems)
+                hint = "" if skip_bad else f" (pass {ARGUMENT} to skip them)"
+                raise DataError(
+                    f"{len(problems)} of {len(table.frames)} frames in {wrench_csv} could not be imported{hint}:\n{listing}",
+                    argument=None if skip_bad else "skip_bad",
                 )
-                continue
-            if problems and not skip_bad:
-                # The import will fail; keep checking so that every bad frame is reported.
-                continue
-            if writer is None:
-                writer = DatasetWriter(
-                    out_dir,
-                    device=device,
-                    frame_shape=first_shape,
-                    bit_depth=bit_depth or 8 * image.dtype.itemsize,
-                    source=source,
-                    fps=fps,
-                    protocol=protocol,
-                    overwrite=overwrite,
-                )
-            writer.add(
-                image,
-                table.wrenches[i],
-                name=out_names[i],
-                t=None if table.t is None else float(table.t[i]),
-                contact=None if table.contact is None else bool(table.contact[i]),
-            )
-            n_written += 1
-        if problems and (not skip_bad or writer is None):
-            listing = "\n".join(f"  row {row}: {message}" for row, _, message in problems)
-            hint = "" if skip_bad else " (pass skip_bad=True to skip them)"
-            raise DataError(
-                f"{len(problems)} of {len(table.frames)} frames in {wrench_csv} could not be imported{hint}:\n{listing}"
-            )
-        assert writer is not None and first_shape is not None
-        writer.close()
-    except BaseException:
-        if writer is not None:
-            writer.abort()
-        raise
-    finally:
-        progress_bar.close()
+            assert writer is not None and first_shape is not None
+            writer.close()
+            _move_dataset_into_place(staging / "dataset", out_dir, staging)
+        except BaseException:
+            if writer is not None:
+                writer.abort()
+            raise
+        finally:
+            progress_bar.close()
     return ImportReport(
         out_dir=out_dir,
         n_frames=n_written,
@@ -869,6 +895,36 @@ def import_recording(
         skipped=tuple((name, message) for _, name, message in problems),
         ignored_columns=table.ignored_columns,
     )
+
+
+# What a dataset folder holds; a folder with nothing else is replaced whole.
+_DATASET_ENTRIES = frozenset({MANIFEST_NAME, WRENCH_NAME, CONTACTS_NAME, FRAMES_DIR})
+
+
+def _move_dataset_into_place(new: Path, out_dir: Path, staging: Path) -> None:
+    """Move the complete dataset folder `new` to `out_dir` by renames.
+
+    An absent or empty `out_dir` is replaced by one rename; a dataset folder holding
+    nothing else by two (the old one goes into `staging`, removed with it). Otherwise the
+    other files stay: the old manifest is removed first, so that the folder never claims a
+    mix of old and new, then `frames/` and the CSVs are moved in and the manifest last.
+    """
+    if out_dir.is_dir() and not any(out_dir.iterdir()):
+        out_dir.rmdir()
+    if not out_dir.exists():
+        os.replace(new, out_dir)
+        return
+    if {p.name for p in out_dir.iterdir()} <= _DATASET_ENTRIES:
+        os.replace(out_dir, staging / "old")
+        os.replace(new, out_dir)
+        return
+    (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
+    for name in (FRAMES_DIR, WRENCH_NAME, CONTACTS_NAME):
+        if (out_dir / name).exists():
+            os.replace(out_dir / name, staging / f"old-{name}")
+        if (new / name).exists():
+            os.replace(new / name, out_dir / name)
+    os.replace(new / MANIFEST_NAME, out_dir / MANIFEST_NAME)
 
 
 def export_recording(

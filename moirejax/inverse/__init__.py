@@ -19,6 +19,7 @@ from ._inversion import (
     track_frame as track_frame,
 )
 from ._invert_io import (
+    check_source as check_source,
     find_reference as find_reference,
     invert_recording as invert_recording,
     load_reference_image as load_reference_image,

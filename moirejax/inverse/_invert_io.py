@@ -3,6 +3,7 @@
 import csv
 import io
 import math
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import jax
 import numpy as np
 
 from .._conventions import WRENCH_AXES
-from .._fileio import atomic_write_text, DataError
+from .._fileio import atomic_write_text, check_output_file, DataError, DataWarning
 from ._inversion import Estimate, frame_tracker, invert_chunk, Inverter, Status
 
 
@@ -26,13 +27,16 @@ CSV_HEADER = (
 )
 
 
-def iter_source_frames(
-    source: str | Path, shape: tuple[int, int]
-) -> Iterator[tuple[str, np.ndarray | None, str | None]]:
-    """Yield `(name, frame or None, error or None)` from a dataset, a video file or a folder of images.
+_IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
 
-    A frame that cannot be read, or has the wrong size, comes back as `None` with a
-    message; the iteration goes on.
+
+def check_source(source: str | Path) -> str:
+    """Check that `source` can be read, before anything is compiled; returns its kind:
+    `"dataset"`, `"folder"` (of images) or `"video"`.
+
+    Raises [`DataError`][] naming the path: no such path, a dataset folder whose manifest is
+    missing (an interrupted writer) or invalid, a folder without images, a file that is not
+    a video.
     """
     import cv2
 
@@ -40,16 +44,51 @@ def iter_source_frames(
 
     path = Path(source)
     if (path / "manifest.json").exists():
+        Dataset(path)  # validates the manifest and every row of wrench.csv
+        return "dataset"
+    if path.is_dir():
+        if (path / "frames").is_dir() or (path / "wrench.csv").exists():
+            raise DataError(
+                f"{path / 'manifest.json'}: no such file; the folder has a dataset's frames/ or wrench.csv but no "
+                "manifest, so the dataset is incomplete (was its writer interrupted?)"
+            )
+        if not any(p.suffix.lower() in _IMAGE_SUFFIXES for p in path.iterdir()):
+            raise DataError(f"{path}: no image files ({', '.join(sorted(_IMAGE_SUFFIXES))}) and no dataset manifest")
+        return "folder"
+    if not path.exists():
+        raise DataError(f"{path}: no such dataset, folder or video")
+    capture = cv2.VideoCapture(str(path))
+    try:
+        if not capture.isOpened():
+            raise DataError(f"{path}: cannot open as a video")
+    finally:
+        capture.release()
+    return "video"
+
+
+def iter_source_frames(
+    source: str | Path, shape: tuple[int, int]
+) -> Iterator[tuple[str, np.ndarray | None, str | None]]:
+    """Yield `(name, frame or None, error or None)` from a dataset, a video file or a folder of images.
+
+    A frame that cannot be read, or has the wrong size, comes back as `None` with a
+    message; the iteration goes on. A video that ends before the number of frames its
+    container declares (truncated, or corrupt part way) is read as far as it goes, with
+    a [`DataWarning`][moirejax.DataWarning] giving both counts.
+    """
+    import cv2
+
+    from ..data import Dataset
+
+    kind = check_source(source)
+    path = Path(source)
+    if kind == "dataset":
         dataset = Dataset(path)
         for i, frame, error in dataset.iter_frames(on_error="status"):
             yield dataset.frame_names[i], frame, error
         return
-    if path.is_dir():
-        names = sorted(
-            p for p in path.iterdir() if p.suffix.lower() in {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
-        )
-        if not names:
-            raise DataError(f"{path}: no image files")
+    if kind == "folder":
+        names = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
         for p in names:
             image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             if image is None:
@@ -57,11 +96,10 @@ def iter_source_frames(
                 continue
             yield p.name, _to_gray(image), None
         return
-    if not path.exists():
-        raise DataError(f"{path}: no such dataset, folder or video")
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise DataError(f"{path}: cannot open as a video")
+    declared = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
     index = 0
     try:
         while True:
@@ -72,6 +110,13 @@ def iter_source_frames(
             index += 1
     finally:
         capture.release()
+    if declared > index:
+        warnings.warn(
+            f"{path}: read {index} of the {declared} frames the video declares; it is truncated or corrupt "
+            f"after frame {index}",
+            DataWarning,
+            stacklevel=2,
+        )
 
 
 def _to_gray(image: np.ndarray) -> np.ndarray:
@@ -85,7 +130,12 @@ def _to_gray(image: np.ndarray) -> np.ndarray:
 
 def find_reference(source: str | Path, shape: tuple[int, int]) -> tuple[np.ndarray | None, str]:
     """A no-contact reference frame for `source`: the mean of up to 8 frames flagged
-    `contact = 0` in a dataset. Returns `(frame or None, description)`."""
+    `contact = 0` in a dataset. Returns `(frame or None, description)`.
+
+    A contact-free frame that cannot be read (truncated, corrupt) is skipped with a
+    [`DataWarning`][moirejax.DataWarning] and the next one used; it still gets its
+    own status row when the recording is inverted.
+    """
     from ..data import Dataset
 
     path = Path(source)
@@ -94,12 +144,24 @@ def find_reference(source: str | Path, shape: tuple[int, int]) -> tuple[np.ndarr
     dataset = Dataset(path)
     if dataset.contact is None:
         return None, f"no reference: {path} has no contact column"
-    free = np.flatnonzero(~dataset.contact)[:8]
+    free = np.flatnonzero(~dataset.contact)
     if len(free) == 0:
         return None, f"no reference: {path} has no contact-free frame"
-    frames = [dataset.frame(int(i)) for i in free]
-    if frames[0].shape != shape:
+    if dataset.frame_shape != shape:
         return None, "no reference: frame size differs from the device"
+    frames, skipped = [], []
+    for i in free:
+        try:
+            frames.append(dataset.frame(int(i)))
+        except DataError as e:
+            skipped.append(str(e))
+            continue
+        if len(frames) == 8:
+            break
+    for message in skipped:
+        warnings.warn(f"reference frame skipped: {message}", DataWarning, stacklevel=2)
+    if not frames:
+        return None, f"no reference: none of the {len(free)} contact-free frames of {path} can be read"
     return np.mean(frames, axis=0), f"reference: mean of {len(frames)} contact-free frames of {path}"
 
 
@@ -153,9 +215,17 @@ def invert_recording(
     from the previous chunk's solution ([`invert_chunk`][]; higher throughput, the same
     estimates to about one standard error). Bad frames give status rows, never an
     exception. Returns the count of each status.
+
+    **Raises:** `ValueError` for `batch < 1`; [`DataError`][] for a source that cannot be
+    read; [`OutputError`][moirejax.OutputError] when `out_csv` cannot be written
+    (checked before the first frame).
     """
     from tqdm.auto import tqdm
 
+    if isinstance(batch, bool) or not isinstance(batch, int | np.integer) or batch < 1:
+        raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
+    check_source(source)
+    check_output_file(out_csv, argument="out_csv")
     shape = (inverter.device.height, inverter.device.width)
     rows: list[list] = []
     counts: dict[str, int] = {}
