@@ -72,9 +72,10 @@ def test_a_unit_that_does_not_glow_keeps_its_wrench(mid, inverter):
     # glows): the brightness law is wrong for it, and its light also leaks into the model's
     # fringe bands. The default refines on the fringe fields with and without the light and
     # keeps the better fit; fitting the brightness band (brightness=True) read Fz 34% of its
-    # range low on this load.
+    # range low on such a load. The centre of pressure, (1.7, -0.3) mm, lies inside the
+    # contact, as it must for a pressure that only pushes.
     unit = eqx.tree_at(lambda d: (d.optics.glow_gain, d.optics.rim_gain), mid, (jnp.asarray(0.0), jnp.asarray(0.0)))
-    wrench = np.array([0.05, -0.08, 0.7, 0.002, -0.003, 0.003])
+    wrench = np.array([0.05, -0.08, 0.7, -0.0002, -0.0012, 0.003])
     contact = Contact(x0=1.0, y0=-0.5, radius=3.0)
     dark = Inverter(mid, reference=render_frame(unit, jnp.zeros(6), Contact()))
     estimate = invert_frame(dark, render_frame(unit, jnp.asarray(wrench), contact))
@@ -144,6 +145,21 @@ def test_bad_frames_give_status_not_wrench(mid, inverter, make, status):
     assert status.message
 
 
+def test_a_frame_the_model_cannot_explain_is_flagged_not_zeroed(mid, inverter):
+    # Three presses far apart: the fringes moved (the gate sees a contact), but one patch
+    # explains at most one of them. The status says so and the best-fit wrench is kept.
+    press = jnp.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    zero = render_frame(mid, jnp.zeros(6), Contact())
+    one = render_frame(mid, press, Contact(-6.0, -6.0, 2.5))
+    three = one + sum(render_frame(mid, press, Contact(x, y, 2.5)) - zero for x, y in ((6.0, -6.0), (0.0, 7.0)))
+    estimate = invert_frame(inverter, three)
+    assert Status(int(estimate.status)) == Status.UNEXPLAINED, Status(int(estimate.status))
+    assert np.all(np.isfinite(np.asarray(estimate.wrench))) and np.all(np.isfinite(np.asarray(estimate.sigma)))
+    assert "explains less than half" in Status.UNEXPLAINED.message
+    # One of them alone is explained.
+    assert Status(int(invert_frame(inverter, one).status)) in (Status.CONVERGED, Status.MAX_STEPS)
+
+
 def test_wrong_size_is_a_clear_error(inverter):
     with pytest.raises((ValueError, TypeError), match="shape|dimension"):
         invert_frame(inverter, jnp.zeros((100, 100)))
@@ -187,7 +203,6 @@ def test_tracking_agrees_with_levenberg_marquardt_and_never_retraces(mid, invert
     def track(inverter, frame, track):
         return inverter.track(frame, track)
 
-    lit = Inverter(mid, reference=render_frame(mid, jnp.zeros(6), Contact()), brightness=True)
     state = inverter.cold_track()
     steps = []
     for i, frame in enumerate(frames):
@@ -195,15 +210,15 @@ def test_tracking_agrees_with_levenberg_marquardt_and_never_retraces(mid, invert
         assert Status(int(estimate.status)) == Status.CONVERGED
         steps.append(int(estimate.steps))
         if i in (3, 9):
-            # A stream fits the brightness band as well as the fringes: the like-for-like
-            # cold solve is the one that does too.
-            reference = invert_frame(lit, frame)
+            # A stream refines on the fringe phase, as the cold solve does.
+            reference = invert_frame(inverter, frame)
             # Both stop within a fraction of a standard error of the least-squares solution.
             difference = np.abs(np.asarray(estimate.wrench) - np.asarray(reference.wrench))
             assert np.all(difference < 1.0 * np.asarray(reference.sigma) + 1e-4 * WRENCH_SCALE), difference
     # After the first frame the frozen-Jacobian iterations carry the stream (a few model
-    # evaluations per frame; Levenberg-Marquardt would take ten or more steps).
-    assert np.median(steps[1:]) <= 3, steps
+    # evaluations per frame; Levenberg-Marquardt would take ten or more steps). On the
+    # fringe phase alone they take one more than on the full residual did.
+    assert np.median(steps[1:]) <= 4, steps
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 1280, 1281])
@@ -296,5 +311,10 @@ def test_contact_gate_reads_the_fringe_phase_not_the_brightness(mid):
     assert max(quiet) < inverter.contact_threshold / 2, quiet
     pressed = frame(20, [0.0, 0.0, 0.1, 0.0, 0.0, 0.0])
     assert float(phase_change(inverter, pressed)) > 4 * inverter.contact_threshold
+    # An 8-bit frame, as a camera delivers it, reads as the same frame in [0, 1].
+    eight_bit = np.clip(np.round(np.asarray(pressed) * 255), 0, 255).astype(np.uint8)
+    assert float(phase_change(inverter, jnp.asarray(eight_bit))) == pytest.approx(
+        float(phase_change(inverter, jnp.asarray(eight_bit / np.float32(255)))), rel=1e-4
+    )
     assert Status(int(invert_frame(inverter, frame(21, zero, 0.7)).status)) == Status.NO_CONTACT
     assert Status(int(invert_frame(inverter, pressed).status)) != Status.NO_CONTACT

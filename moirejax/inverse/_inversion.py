@@ -20,6 +20,13 @@ frame: the predicted fringe field is multiplied by the ratio of the observed to 
 predicted reference fringe field, and the predicted brightness change is added to the
 observed reference brightness.
 
+**Phase, not amplitude.** Each fringe residual is split into its part along the predicted
+fringe phasor (the fringes' amplitude) and across it (their phase). The amplitude moves
+with contrast, exposure, illumination and the scene behind the sensor, none of which a
+unit's model knows exactly; the phase moves only with displacement. The brightness and
+the amplitude help a cold start find its basin; the estimate is refined on the phase alone
+([`Inverter.solve`][]), and streams stay on that problem.
+
 **Unknowns.** The scaled wrench (each axis over the paper's range), the contact centre,
 the log contact radius and the log exposure. Two weak priors make the problem well posed
 at light load: the centre of pressure stays near the contact centre (a pressure tilt
@@ -50,7 +57,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, Real
 
 from .._conventions import NMM_PER_NM, WRENCH_SCALE
 from ..observe import (
@@ -82,6 +89,10 @@ _WRENCH_PRIOR = 1.0
 N_PRIORS = 9
 # A cold solve whose cost is above this fraction of the zero-load cost tries more starts.
 _UNEXPLAINED = 0.004
+# A contact frame whose fringe phase residual, above the pixel noise, keeps more than this
+# share of its change from the reference (also above the noise) is one the model does not
+# explain.
+_UNEXPLAINED_SHARE = 0.5
 # Window (mm, Gaussian sd) over which the phase change is averaged to detect a contact.
 _CONTACT_WINDOW = 2.0
 
@@ -96,6 +107,7 @@ class Status(enum.IntEnum):
     BAD_FRAME = 4
     WRONG_SIZE = 5
     UNREADABLE = 6
+    UNEXPLAINED = 7
 
     @property
     def message(self) -> str:
@@ -110,6 +122,10 @@ _MESSAGES = {
     Status.BAD_FRAME: "frame is black, saturated or shows no fringes; no wrench",
     Status.WRONG_SIZE: "frame has the wrong size for this device; no wrench",
     Status.UNREADABLE: "frame could not be read or decoded; no wrench",
+    Status.UNEXPLAINED: (
+        "in contact, but the model explains less than half of how the fringe phase changed; the wrench is the "
+        "best fit and may be far off (a contact, unit or scene the model does not describe)"
+    ),
 }
 
 
@@ -221,6 +237,7 @@ class Inverter(eqx.Module):
     model_reference: FringeFields
     fringe_weight: Float[Array, "families m n"]
     brightness_weight: Float[Array, "m n"]
+    amplitude_weight: Float[Array, ""]
     noise_residuals: Float[Array, "samples n"]
     noise_power: Float[Array, ""]
     glow_per_newton: Float[Array, ""]
@@ -318,6 +335,7 @@ class Inverter(eqx.Module):
         # the border; weighting by the envelope undoes that (and drops the border).
         self.fringe_weight = self.demodulator.fringe_envelope.astype(zero.dtype)
         self.brightness_weight = self.demodulator.brightness_envelope.astype(zero.dtype)
+        self.amplitude_weight = jnp.ones((), zero.dtype)
         self.noise_residuals = self._unit_noise_residuals()
         self.noise_power = jnp.sum(self.noise_residuals**2) / self.noise_residuals.shape[0]
         # Integrated brightness excess per newton of a centred press: starts Fz.
@@ -354,23 +372,38 @@ class Inverter(eqx.Module):
         frames = jnp.asarray(rng.normal(size=(samples, *self.demodulator.frame_shape)), dtype=self.fringe_weight.dtype)
 
         def residual(frame):
+            # Noise is circular: its split along and across the reference's fringes is that
+            # of any prediction's.
             fields = self.demodulator(frame)
-            fringe = fields.fringe * self.fringe_weight.astype(fields.fringe.dtype)
-            brightness = fields.brightness * self.brightness_weight
-            return jnp.concatenate([fringe.real.ravel(), fringe.imag.ravel(), brightness.ravel()])
+            return self._band_residual(fields.fringe, fields.brightness, self.reference.fringe)
 
         return jax.lax.map(residual, frames)
+
+    def _band_residual(self, fringe_change, brightness_change, fringe) -> Float[Array, " n"]:
+        """The whitened residual vector of a change of the bands (observed minus predicted).
+
+        The fringe change is split at every coarse-grid point into its component along the
+        `fringe` phasor there (a change of the fringes' amplitude: contrast, exposure,
+        illumination) and across it (a change of their phase: displacement), so that the
+        amplitude can be weighed apart (`amplitude_weight`). Layout: the amplitude
+        components, the phase components, then the brightness.
+        """
+        direction = jnp.conj(fringe) * jax.lax.rsqrt(fringe.real**2 + fringe.imag**2 + 1e-24).astype(fringe.dtype)
+        rotated = fringe_change * direction * self.fringe_weight.astype(fringe.dtype)
+        return jnp.concatenate(
+            [
+                rotated.real.ravel() * self.amplitude_weight,
+                rotated.imag.ravel(),
+                (brightness_change * self.brightness_weight).ravel(),
+            ]
+        )
 
     def _data_residuals(self, y, observed: FringeFields):
         predicted = self._predict(y)
         # Fixed-pattern correction by the reference frame (see the module docstring).
         fringe = predicted.fringe * complex_ratio(self.reference.fringe, self.model_reference.fringe)
         brightness = predicted.brightness - self.model_reference.brightness + self.reference.brightness
-        fringe_residual = (observed.fringe - fringe) * self.fringe_weight.astype(fringe.dtype)
-        brightness_residual = (observed.brightness - brightness) * self.brightness_weight
-        return jnp.concatenate(
-            [fringe_residual.real.ravel(), fringe_residual.imag.ravel(), brightness_residual.ravel()]
-        )
+        return self._band_residual(observed.fringe - fringe, observed.brightness - brightness, fringe)
 
     def _prior_residuals(self, y, noise):
         wrench, contact, _ = _unpack(y)
@@ -394,9 +427,11 @@ class Inverter(eqx.Module):
 
     def _zero_residuals(self, observed: FringeFields):
         # The zero-load prediction, reference-corrected, is the reference itself.
-        fringe = (observed.fringe - self.reference.fringe) * self.fringe_weight.astype(observed.fringe.dtype)
-        brightness = (observed.brightness - self.reference.brightness) * self.brightness_weight
-        return jnp.concatenate([fringe.real.ravel(), fringe.imag.ravel(), brightness.ravel()])
+        return self._band_residual(
+            observed.fringe - self.reference.fringe,
+            observed.brightness - self.reference.brightness,
+            self.reference.fringe,
+        )
 
     def _phase_change_map(self, observed: FringeFields) -> Float[Array, "families m n"]:
         r"""Energy of the fringe phase change against the reference at each coarse-grid
@@ -433,7 +468,7 @@ class Inverter(eqx.Module):
         ratio = local / jnp.maximum(coverage, 1e-30)
         return jnp.max(jnp.where(coverage > 0.5 * jnp.max(coverage), ratio, 0.0))
 
-    def phase_change(self, frame: Float[Array, "h w"]) -> Float[Array, ""]:
+    def phase_change(self, frame: Real[Array, "h w"]) -> Float[Array, ""]:
         """How far the fringe phase of `frame` has moved from the reference, in units of its noise.
 
         The phase-change energy at each point of the coarse grid, over what the frame's and
@@ -513,11 +548,15 @@ class Inverter(eqx.Module):
             jacobian=jnp.zeros((n, N_UNKNOWNS), dtype),
             change=jnp.zeros(n, dtype),
             valid=jnp.asarray(False),
+            light=jnp.ones((), dtype),
         )
 
     def _prepare(self, frame):
         if frame.shape != (self.device.height, self.device.width):
             raise ValueError(f"frame has shape {frame.shape}, device expects {(self.device.height, self.device.width)}")
+        if frame.dtype in (jnp.uint8, jnp.uint16):
+            # As a camera or `cv2.imread` delivers it: the inversion reads frames in [0, 1].
+            frame = frame.astype(self.device.p1.dtype) / jnp.iinfo(frame.dtype).max
         frame = frame.astype(self.device.p1.dtype)
         observed = self.observe(frame)
         # Every Fourier coefficient sums every pixel, so one NaN or inf pixel makes the whole
@@ -535,12 +574,13 @@ class Inverter(eqx.Module):
             noise_variance=jnp.where(finite, white_noise_variance(jnp.where(jnp.isfinite(frame), frame, 0.0)), 0.0),
         )
         r_zero = self._zero_residuals(observed)
-        # Robust noise level: the median absolute whitened residual of zero load (most of
-        # the field is outside any contact), scaled to a Gaussian sigma. Every fourth value
-        # is plenty (1280 for crossed grids: 3.5% scatter); the level only weighs the
-        # priors and sizes the steps in standard errors.
-        fringe_size = 2 * self.fringe_weight.size
-        noise = jnp.maximum(_median(jnp.abs(r_zero[:fringe_size:4])) / 0.6745, 1e-9)
+        # Robust noise level: the median absolute whitened phase residual of zero load (most
+        # of the field is outside any contact; a change of exposure or illumination moves
+        # only the amplitude components), scaled to a Gaussian sigma. Every second value is
+        # plenty (1024 for crossed grids: 4% scatter); the level only weighs the priors and
+        # sizes the steps in standard errors.
+        size = self.fringe_weight.size
+        noise = jnp.maximum(_median(jnp.abs(r_zero[size : 2 * size : 2])) / 0.6745, 1e-9)
         return screen, observed, r_zero, noise
 
     def _prior_jacobian(self, y, noise):
@@ -572,9 +612,13 @@ class Inverter(eqx.Module):
             gradient = jacobian.T @ r[:-N_PRIORS] + prior_jac.T @ r[-N_PRIORS:]
             inverse = jnp.linalg.pinv(jtj, hermitian=True)
             dy = -inverse @ gradient
-            # Steps in units of each unknown's standard error at this noise level.
+            # Steps in units of each unknown's standard error at this noise level, over the
+            # unknowns the data or the priors inform: on the fringe phase alone the exposure
+            # is not seen at all, has no standard error, and takes no step.
+            information = jnp.diagonal(jtj)
+            informed = information > 1e-9 * jnp.max(information)
             sigma = noise * jnp.sqrt(jnp.clip(jnp.diagonal(inverse), 1e-30, None))
-            return dy, jnp.max(jnp.abs(dy) / sigma)
+            return dy, jnp.max(jnp.where(informed, jnp.abs(dy) / sigma, 0.0))
 
         cost0 = jnp.sum(r**2)
         dy, size = step(y, r, jacobian)
@@ -737,7 +781,19 @@ class Inverter(eqx.Module):
         # Contact from the data: has the fringe phase moved beyond its noise somewhere?
         in_contact = self._phase_change_statistic(observed, screen) > self.contact_threshold
         status = _status(result, screen, observed, self.reference, in_contact, y)
+        # How much of the fringe phase's change from the reference the fit leaves, both above
+        # what the frame's and the reference's pixel noise alone would leave there: judged on
+        # the phase, which the wrench rests on, whatever else the residual holds.
+        size = self.fringe_weight.size
+        noise_cost = (screen.noise_variance + self.reference_noise) * jnp.sum(self.unit_phase_noise)
+        left = jnp.sum(r_data[size : 2 * size] ** 2) - noise_cost
+        change = jnp.sum(r_zero[size : 2 * size] ** 2) - noise_cost
+        unexplained = left > _UNEXPLAINED_SHARE * jnp.maximum(change, 0.0)
+        # An unexplained frame keeps its wrench and covariance, and a converged one still
+        # seeds the next frame of a stream: the flag is for the user, not the solver.
         ok = (status == Status.CONVERGED) | (status == Status.MAX_STEPS)
+        converged = status == Status.CONVERGED
+        status = jnp.where(ok & unexplained, Status.UNEXPLAINED, status).astype(status.dtype)
         nan6 = jnp.full(6, jnp.nan, dtype)
         wrench = jnp.where(ok, wrench, jnp.where(status == Status.NO_CONTACT, jnp.zeros(6, dtype), nan6))
         covariance = jnp.where(ok | (status == Status.NO_CONTACT), covariance, jnp.full((6, 6), jnp.nan, dtype))
@@ -755,22 +811,33 @@ class Inverter(eqx.Module):
         )
         # Only a converged contact is a good linearisation point for the next frame.
         track = Track(
-            state=jnp.where(ok, y, jnp.nan), jacobian=jacobian, change=r_zero - r_data, valid=status == Status.CONVERGED
+            state=jnp.where(ok, y, jnp.nan),
+            jacobian=jacobian,
+            change=r_zero - r_data,
+            valid=converged,
+            light=jnp.ones((), dtype),
         )
         return estimate, track
 
     def _fitting(self, light) -> "Inverter":
-        """This inverter with a residual of the fringe fields alone (brightness weight and its
-        share of the unit-noise draws set to zero), and the light a contact scatters (glow and
-        rim) scaled by `light` in the model: 1 for a unit that scatters it as the device
-        says, 0 for one that does not. The light leaks into the fringe bands, so a law the
-        unit does not follow biases the fringe fit too."""
-        fringe_size = 2 * self.fringe_weight.size
-        noise_residuals = self.noise_residuals.at[:, fringe_size:].set(0.0)
+        """This inverter with a residual of the fringe phase alone (the weights of the
+        brightness and of the fringes' amplitude, and their shares of the unit-noise draws,
+        set to zero), and the light a contact scatters (glow and rim) scaled by `light` in
+        the model: 1 for a unit that scatters it as the device says, 0 for one that does
+        not. The light leaks into the fringe bands, so a law the unit does not follow biases
+        the fringe fit too.
+
+        The amplitude is left out because photometry moves it: on frames of an independent
+        renderer, the fringe amplitude at the true load differed from the model's by up to
+        10% (contrast under compression, defocus), three to seven times the phase misfit,
+        and pulled the wrench off by more than its range on the axes the phase sees weakly."""
+        size = self.fringe_weight.size
+        noise_residuals = self.noise_residuals.at[:, :size].set(0.0).at[:, 2 * size :].set(0.0)
         optics = self.model.mechanics.device.optics
         return eqx.tree_at(
             lambda i: (
                 i.brightness_weight,
+                i.amplitude_weight,
                 i.noise_residuals,
                 i.noise_power,
                 i.model.mechanics.device.optics.glow_gain,
@@ -779,6 +846,7 @@ class Inverter(eqx.Module):
             self,
             (
                 jnp.zeros_like(self.brightness_weight),
+                jnp.zeros_like(self.amplitude_weight),
                 noise_residuals,
                 jnp.sum(noise_residuals**2) / noise_residuals.shape[0],
                 optics.glow_gain * light,
@@ -786,74 +854,116 @@ class Inverter(eqx.Module):
             ),
         )
 
-    def track(self, frame: Float[Array, "h w"], track: "Track") -> tuple[Estimate, "Track"]:
+    def _fit_for(self, light) -> "Inverter":
+        """The problem a solution is refined on: [`Inverter._fitting`][] with the contact light
+        scaled by `light`, or this inverter itself when it fits the brightness."""
+        return self if self.brightness else self._fitting(light)
+
+    def _solve_cold(self, y0, args, *, more_starts: bool):
+        """Levenberg–Marquardt on the full residual from `y0` (the brightness places a cold
+        start in the right basin on a unit that glows), then, unless the inverter fits the
+        brightness, two refinements on the fringe phase alone: with the contact light the
+        device describes, and with none. Returns the better refinement as
+        `(y, r, jacobian, steps, result, light)`, `r` and `jacobian` those of
+        `self._fit_for(light)`."""
+        y, r, jacobian, steps, result = self._levenberg_marquardt(y0, args, more_starts=more_starts)
+        if self.brightness:
+            return y, r, jacobian, steps, result, jnp.ones((), y.dtype)
+        zero_cost = jnp.sum(self._fitting(1.0)._zero_residuals(args[0]) ** 2)
+
+        def refine(more, light):
+            # The device's light first; the second refinement (no light) tries further
+            # starts only when the first leaves the frame poorly explained: a unit that
+            # glows as the device says is done in a few steps, one that does not needs them.
+            y_, r_, jacobian_, steps_, result_ = self._fitting(light)._levenberg_marquardt(y, args, more_starts=more)
+            poor = jnp.sum(r_[:-N_PRIORS] ** 2) > _UNEXPLAINED * zero_cost
+            return more_starts & poor, (y_, r_, jacobian_, steps_, result_)
+
+        # One traced solver run twice (light as the device says, then none), not two copies.
+        lights = jnp.asarray([1.0, 0.0], y.dtype)
+        _, (ys, rs, jacobians, refine_steps, results) = jax.lax.scan(refine, jnp.asarray(False), lights)
+        costs = jnp.sum(rs[:, :-N_PRIORS] ** 2, axis=1)
+        best = jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))
+        y, r, jacobian, result = jax.tree_util.tree_map(lambda a: a[best], (ys, rs, jacobians, results))
+        return y, r, jacobian, steps + jnp.sum(refine_steps).astype(steps.dtype), result, lights[best]
+
+    def track(self, frame: Real[Array, "h w"], track: "Track") -> tuple[Estimate, "Track"]:
         """Invert one frame of a stream; pure and jit-able (see [`track_frame`][]).
 
         With a valid `track`, a few frozen-Jacobian Gauss–Newton iterations from the last
-        solution (about three model evaluations); if they do not converge, or without a
-        valid track, Levenberg–Marquardt from the best of the last solution and the cold
-        guess (its first two starts only, so that a stream does not stall; see
+        solution on the problem that solution was refined on (fringe phase, with the contact
+        light it chose; about three model evaluations), then the same iterations with a
+        fresh Jacobian. If neither converges, or without a valid track, the cold solve of
+        [`Inverter.solve`][] from the best of the last solution, the iterations' end and
+        the cold guess (its first two starts only, so that a stream does not stall; see
         `Inverter._levenberg_marquardt`). Returns the estimate and the track for the next frame.
-        A stream fits the fringe fields and the brightness whatever `brightness` says.
         """
-        screen, observed, r_zero, noise = self._prepare(frame)
+        screen, observed, _, noise = self._prepare(frame)
         args = (observed, noise)
         cold = self.initial_guess(observed)
         usable = track.valid & jnp.all(jnp.isfinite(track.state))
         warm = jnp.where(usable, track.state, cold)
+        fit = self._fit_for(track.light)
+        r_zero = fit._zero_residuals(observed)
         # The last frame's prediction at `warm` gives its residual here without a model run.
         r_warm = jax.lax.cond(
             usable,
-            lambda: jnp.concatenate([r_zero - track.change, self._prior_residuals(warm, noise)]),
-            lambda: self.residuals(cold, args),
+            lambda: jnp.concatenate([r_zero - track.change, fit._prior_residuals(warm, noise)]),
+            lambda: fit.residuals(cold, args),
         )
-        y_chord, r_chord, j_chord, chord_steps, accepted, pending = self._chord(warm, r_warm, track.jacobian, args)
+        y_chord, r_chord, j_chord, chord_steps, accepted, pending = fit._chord(warm, r_warm, track.jacobian, args)
         accepted = usable & accepted
 
         def fast(_):
-            return y_chord, r_chord, j_chord, chord_steps, optx.RESULTS.successful, pending
+            return y_chord, r_chord, j_chord, chord_steps, optx.RESULTS.successful, pending, track.light
 
         def slow(_):
             # Second tier: the same iterations with a Jacobian evaluated afresh at the best
             # point so far (about one Levenberg–Marquardt step's cost).
             chord_ok = jnp.all(jnp.isfinite(y_chord)) & usable
-            start, r_start = self._best_start(
+            start, r_start = fit._best_start(
                 [cold, warm, jnp.where(chord_ok, y_chord, cold)],
-                [self.residuals(cold, args), r_warm, jnp.where(chord_ok, r_chord, jnp.inf)],
+                [fit.residuals(cold, args), r_warm, jnp.where(chord_ok, r_chord, jnp.inf)],
             )
-            start_cost = jnp.sum(r_start**2)
-            y_fresh, r_fresh, j_fresh, fresh_steps, fresh_ok, fresh_pending = self._chord(
-                start, r_start, self._data_jacobian(start, observed), args
+            y_fresh, r_fresh, j_fresh, fresh_steps, fresh_ok, fresh_pending = fit._chord(
+                start, r_start, fit._data_jacobian(start, observed), args
             )
 
             def refreshed(_):
                 steps = chord_steps + fresh_steps
-                return y_fresh, r_fresh, j_fresh, steps, optx.RESULTS.successful, fresh_pending
+                return y_fresh, r_fresh, j_fresh, steps, optx.RESULTS.successful, fresh_pending, track.light
 
-            def levenberg_marquardt(_):
-                better = jnp.sum(r_fresh**2) < start_cost
-                y, r, jacobian, steps, result = self._levenberg_marquardt(
-                    jnp.where(better & jnp.all(jnp.isfinite(y_fresh)), y_fresh, start), args, more_starts=False
-                )
-                return y, r, jacobian, steps, result, jnp.zeros_like(y)
+            def cold_solve(_):
+                # The start is chosen on the full residual, as the cold solve's first stage
+                # sees it, between the cold guess and the last solution: after a jump to an
+                # unrelated load, iterations on the phase alone from the last solution end
+                # in its basin, and the brightness points to the new contact.
+                start, _ = self._best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
+                y, r, jacobian, steps, result, light = self._solve_cold(start, args, more_starts=False)
+                return y, r, jacobian, steps, result, jnp.zeros_like(y), light
 
-            return jax.lax.cond(fresh_ok, refreshed, levenberg_marquardt, None)
+            return jax.lax.cond(usable & fresh_ok, refreshed, cold_solve, None)
 
-        y, r, jacobian, steps, result, pending = jax.lax.cond(accepted, fast, slow, None)
-        return self._finish(screen, observed, r_zero, noise, y, r, jacobian, steps, result, warm, pending)
+        y, r, jacobian, steps, result, pending, light = jax.lax.cond(accepted, fast, slow, None)
+        fit = self._fit_for(light)
+        estimate, next_track = fit._finish(
+            screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, warm, pending
+        )
+        return estimate, eqx.tree_at(lambda t: t.light, next_track, light)
 
-    def solve(self, frame: Float[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
+    def solve(self, frame: Real[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
         """Invert one frame with Levenberg–Marquardt. Pure and jit-able; see [`invert_frame`][].
 
         `init` warm-starts the solver (the previous frame's `Estimate.state`); `None` or a
         non-finite `init` means a cold start from the brightness excess. Streams are faster
-        through [`Inverter.track`][].
+        through [`Inverter.track`][]. A frame is read in [0, 1]; 8- and 16-bit integer
+        frames, as a camera delivers them, are scaled to it.
 
         Without `brightness`, the solution of the full residual (fringe fields and
         brightness), whose glow places a cold start in the right basin on a unit that glows,
-        is refined on the fringe fields alone twice: with the contact light the device
-        describes, and with none. The better fringe fit is the estimate, so that a unit that
-        does not glow as the device says (or at all) is not biased by the law.
+        is refined on the fringe phase alone twice: with the contact light the device
+        describes, and with none. The better phase fit is the estimate, so that neither the
+        unit's brightness nor its fringes' amplitude, which photometry moves, biases it.
         """
         screen, observed, r_zero, noise = self._prepare(frame)
         args = (observed, noise)
@@ -866,35 +976,11 @@ class Inverter(eqx.Module):
             usable = jnp.all(jnp.isfinite(init))
             warm = jnp.where(usable, init, cold)
             y0, _ = self._best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
-        y, r, jacobian, steps, result = self._levenberg_marquardt(y0, args)
-        if self.brightness:
-            return self._finish(screen, observed, r_zero, noise, y, r, jacobian, steps, result, y0)[0]
-        fringe_size = 2 * self.fringe_weight.size
-        r_zero = r_zero.at[fringe_size:].set(0.0)
+        y, r, jacobian, steps, result, light = self._solve_cold(y0, args, more_starts=True)
+        fit = self._fit_for(light)
+        return fit._finish(screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, y0)[0]
 
-        zero_cost = jnp.sum(r_zero**2)
-
-        def refine(more_starts, light):
-            # The device's light first; the second refinement (no light) tries further
-            # starts only when the first leaves the frame poorly explained: a unit that
-            # glows as the device says is done in a few steps, one that does not needs them.
-            y_, r_, jacobian_, steps_, result_ = self._fitting(light)._levenberg_marquardt(
-                y, args, more_starts=more_starts
-            )
-            poor = jnp.sum(r_[:-N_PRIORS] ** 2) > _UNEXPLAINED * zero_cost
-            return poor, (y_, r_, jacobian_, steps_, result_)
-
-        # One traced solver run twice (light as the device says, then none), not two copies.
-        lights = jnp.asarray([1.0, 0.0], y.dtype)
-        _, (ys, rs, jacobians, refine_steps, results) = jax.lax.scan(refine, jnp.asarray(False), lights)
-        costs = jnp.sum(rs[:, :-N_PRIORS] ** 2, axis=1)
-        best = jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))
-        fit = self._fitting(lights[best])
-        y, r, jacobian, result = jax.tree_util.tree_map(lambda a: a[best], (ys, rs, jacobians, results))
-        steps = steps + jnp.sum(refine_steps).astype(steps.dtype)
-        return fit._finish(screen, observed, r_zero, noise, y, r, jacobian, steps, result, y0)[0]
-
-    def chord_batch(self, frames: Float[Array, "b h w"], track: "Track") -> tuple[Estimate, Bool[Array, " b"], "Track"]:
+    def chord_batch(self, frames: Real[Array, "b h w"], track: "Track") -> tuple[Estimate, Bool[Array, " b"], "Track"]:
         """Frozen-Jacobian iterations for a batch of nearby frames from one shared `track`.
 
         Vectorises well (no Levenberg–Marquardt branch inside the vmap). Returns the
@@ -902,14 +988,18 @@ class Inverter(eqx.Module):
         and each frame's track (a leading batch axis) to continue a stream from.
         """
 
+        fit = self._fit_for(track.light)
+
         def one(frame):
-            screen, observed, r_zero, noise = self._prepare(frame)
+            screen, observed, _, noise = self._prepare(frame)
             args = (observed, noise)
-            r_start = jnp.concatenate([r_zero - track.change, self._prior_residuals(track.state, noise)])
-            y, r, jacobian, steps, accepted, pending = self._chord(track.state, r_start, track.jacobian, args)
-            estimate, frame_track = self._finish(
+            r_zero = fit._zero_residuals(observed)
+            r_start = jnp.concatenate([r_zero - track.change, fit._prior_residuals(track.state, noise)])
+            y, r, jacobian, steps, accepted, pending = fit._chord(track.state, r_start, track.jacobian, args)
+            estimate, frame_track = fit._finish(
                 screen, observed, r_zero, noise, y, r, jacobian, steps, optx.RESULTS.successful, y, pending
             )
+            frame_track = eqx.tree_at(lambda t: t.light, frame_track, track.light)
             # A frame the chord settles is done whatever its verdict; a frame that needs no
             # solution (bad, non-finite) is done too.
             status = estimate.status
@@ -938,12 +1028,15 @@ class Track(eqx.Module):
     """What a stream carries from frame to frame: the last solution, the data Jacobian
     there, and the model's predicted change of the data from zero load there (so the
     next frame's residual at the last solution costs no model run); `valid` is false
-    before the first converged contact. Make the first one with [`Inverter.cold_track`][]."""
+    before the first converged contact; `light` is the scale of the contact light the
+    solution was refined with (see [`Inverter.solve`][]). Make the first one with
+    [`Inverter.cold_track`][]."""
 
     state: Float[Array, "10"]
     jacobian: Float[Array, "n 10"]
     change: Float[Array, " n"]
     valid: Bool[Array, ""]
+    light: Float[Array, ""]
 
 
 class _Screen(eqx.Module):
@@ -989,14 +1082,14 @@ def _over_devices(frames: Float[Array, "b h w"]) -> Float[Array, "b h w"]:
 
 
 @eqx.filter_jit
-def invert_frame(inverter: Inverter, frame: Float[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
+def invert_frame(inverter: Inverter, frame: Real[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
     """Invert one frame, warm-started from `init` (the previous frame's `Estimate.state`)."""
     return inverter.solve(frame, init)
 
 
 @eqx.filter_jit
 def invert_batch(
-    inverter: Inverter, frames: Float[Array, "b h w"], init: Float[Array, "b 10"] | None = None
+    inverter: Inverter, frames: Real[Array, "b h w"], init: Float[Array, "b 10"] | None = None
 ) -> Estimate:
     """Invert a batch of frames independently (vmapped; split over the devices JAX sees
     when the batch divides evenly among them).
@@ -1012,7 +1105,7 @@ def invert_batch(
 
 
 @eqx.filter_jit
-def track_frame(inverter: Inverter, frame: Float[Array, "h w"], track: Track) -> tuple[Estimate, Track]:
+def track_frame(inverter: Inverter, frame: Real[Array, "h w"], track: Track) -> tuple[Estimate, Track]:
     """Invert the next frame of a stream: `estimate, track = track_frame(inverter, frame, track)`,
     starting from `inverter.cold_track()`. The fast path of a camera stream."""
     return inverter.track(frame, track)
@@ -1042,7 +1135,7 @@ def _chord_batch(inverter: Inverter, frames, track: Track):
 def _relinearise(inverter: Inverter, track: Track) -> Track:
     # The data Jacobian depends on the frame only through the reference wavevectors, which
     # every frame shares with the reference.
-    jacobian = inverter._data_jacobian(track.state, inverter.reference)
+    jacobian = inverter._fit_for(track.light)._data_jacobian(track.state, inverter.reference)
     return eqx.tree_at(lambda t: t.jacobian, track, jnp.where(track.valid, jacobian, track.jacobian))
 
 

@@ -75,8 +75,8 @@ class TactileProcessor:
 
     Made by [`make_tactile_processor`][]. Each call returns `(wrench, covariance, status,
     message)` with `status` the lower-case [`Status`][] name (`"converged"`,
-    `"max_steps"`, `"no_contact"`, `"bad_frame"`, `"nonfinite"`, `"wrong_size"`). The solver
-    continues from the previous frame's solution and Jacobian while frames converge; any
+    `"max_steps"`, `"unexplained"`, `"no_contact"`, `"bad_frame"`, `"nonfinite"`, `"wrong_size"`).
+    The solver continues from the previous frame's solution and Jacobian while frames converge; any
     other outcome resets it to a cold start, so one bad frame cannot drag the next ones
     off. Frames are cast to the device's dtype, so every call hits the one compiled
     step ([`frame_tracker`][]).
