@@ -1,0 +1,389 @@
+"""Frames outside the model's validity, and corrupted inputs: what the inversion believes.
+
+    python benchmarks/bad_frames.py [--n 8] [--seed 0] [--json] [--no-files]
+
+A unit of the Mid design (`mj.preset("mid")`, `high`-fidelity frames with a fixed
+fabrication error) is inverted cold, frame by frame ([`mj.invert_frame`]) with the
+nominal design and the mean of four of its own unloaded frames as the reference. Each case
+draws `--n` random instances:
+
+- **invalid** frames, which must not get a believed wrench (status `converged` or
+  `max_steps`): uniform and Gaussian pixel noise; a natural image from `skimage.data`
+  (a random crop, resized to the frame); loaded frames of another design (`dense`,
+  `sparse`) = the wrong unit; black; white; an over-exposed loaded frame (gain 4,
+  clipped); a dark blob over half the field of a loaded frame; a loaded frame rolled by
+  3-12 pixels on each axis (a camera that moved); a loaded frame with 0.5 % NaN pixels.
+- **valid** frames, which must: noisy loaded frames of the unit (loads of the `mixed`
+  schedule, inside the paper's ranges) must get a believed wrench, and unloaded frames
+  must be called `no_contact`.
+
+Per case: the count of each status, the false-accept rate (invalid frames with a believed
+wrench) or false-reject rate, crashes (exceptions escaping `invert_frame`), and, for the
+invalid frames that were believed, the median and maximum of |Fz| and of the largest
+|wrench axis| / that axis' calibrated range (`mj.axis_ranges`). `unexplained` keeps a
+flagged wrench and counts as not believed.
+
+Unless `--no-files`, file-level faults go through the command line (`moirejax invert`,
+called in-process as `moirejax.cli.main`): a dataset and a folder of frames holding
+truncated, bit-flipped, empty, header-only and garbage PNGs (and, in the folder, a
+wrong-size, an RGB and a 16-bit PNG), a dataset whose first contact-free (reference) frame
+is truncated, a truncated `--reference` image and a truncated `manifest.json`. Counted:
+crashes (an exception escaping `main`, a traceback on stderr, exit code 1 or one
+docs/errors.md does not list), lost or partial output (a CSV missing, or with fewer rows
+than there are frames), and corrupt files that got a believed wrench. Each `invert` run
+compiles its own stream inversion, so this part adds two compiles.
+
+Time per frame, the compile time of the first frame and the peak memory are printed too.
+The inversion grid is the default ([`mj.model_grid_for`]); set `MOIREJAX_MODEL_GRID`
+(e.g. `64`) to trade accuracy for a faster run: the JSON records the grid used. A cold
+solve of a frame the model cannot explain runs every fallback start: `--n 2` (24 frames)
+took 12 minutes on two CPU cores shared with a test run (median 24 s a frame, 40 s compile),
+so start small.
+"""
+
+import argparse
+import contextlib
+import csv
+import io
+import json
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import skimage.data
+import skimage.transform
+
+import moirejax as mj
+
+
+BELIEVED = (mj.Status.CONVERGED, mj.Status.MAX_STEPS)
+EXIT_CODES = (0, 2, 3, 4, 130)  # docs/errors.md; 1 is an internal error (a bug)
+NATURAL = ("camera", "astronaut", "coins", "moon", "page", "text", "brick", "grass", "gravel", "horse", "coffee")
+
+
+def _render(device: mj.Device, fabrication: jax.Array):
+    """A jitted `high`-fidelity renderer of `device`: `(key, wrench, x0, y0, radius) -> frame`."""
+
+    def render(key, wrench, x0, y0, radius):
+        contact = mj.Contact(x0=x0, y0=y0, radius=radius)
+        return mj.render_frame_high(key, device, wrench, contact, fabrication_key=fabrication)
+
+    return jax.jit(render)
+
+
+def _natural(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
+    """A random crop of a `skimage.data` image, resized to `shape`, in [0, 1] (8-bit)."""
+    name = NATURAL[rng.integers(len(NATURAL))]
+    image = np.asarray(getattr(skimage.data, name)(), dtype=float)
+    if image.ndim == 3:
+        image = image[..., :3] @ np.array([0.2125, 0.7154, 0.0721])
+    image = image / max(float(image.max()), 1.0)
+    h, w = image.shape
+    side = int(rng.uniform(0.5, 1.0) * min(h, w))
+    top, left = rng.integers(h - side + 1), rng.integers(w - side + 1)
+    crop = skimage.transform.resize(image[top : top + side, left : left + side], shape, anti_aliasing=True)
+    return np.round(np.clip(crop, 0, 1) * 255) / 255
+
+
+def _blob(rng: np.random.Generator, frame: np.ndarray) -> np.ndarray:
+    """`frame` with a dark, soft-edged ellipse over about half of the field."""
+    h, w = frame.shape
+    yy, xx = np.mgrid[:h, :w] / np.array([h, w])[:, None, None]
+    cy, cx = rng.uniform(0.25, 0.75, 2)
+    angle = rng.uniform(0, np.pi)
+    ratio = rng.uniform(0.6, 1.0)
+    u = (xx - cx) * np.cos(angle) + (yy - cy) * np.sin(angle)
+    v = -(xx - cx) * np.sin(angle) + (yy - cy) * np.cos(angle)
+    # Semi-axes (r, r * ratio) cover about half of the unit square: pi r^2 ratio = 0.5.
+    r = np.sqrt(0.5 / (np.pi * ratio))
+    distance = np.sqrt((u / r) ** 2 + (v / (r * ratio)) ** 2)
+    mask = np.clip((1.05 - distance) / 0.1, 0, 1)
+    dark = 0.04 + rng.normal(0, 0.01, frame.shape)
+    return np.clip(frame * (1 - mask) + dark * mask, 0, 1)
+
+
+def _stats(values: list[float]) -> dict | None:
+    return {"median": float(np.median(values)), "max": float(np.max(values))} if values else None
+
+
+def _invert_cases(inverter, frames_by_case):
+    """Invert every frame of every case; returns the per-case report and the timings."""
+    ranges = np.asarray(mj.axis_ranges())
+    seconds: list[float] = []
+    report = {}
+    for case, (kind, frames, truths) in frames_by_case.items():
+        statuses, crashes, errors = [], 0, []
+        accepted_fz, accepted_over_range, loaded_error = [], [], []
+        for frame, truth in zip(frames, truths):
+            t = time.perf_counter()
+            try:
+                estimate = jax.device_get(mj.invert_frame(inverter, jnp.asarray(frame, jnp.float32)))
+            except Exception as e:  # a crash is what the benchmark counts
+                crashes += 1
+                errors.append(f"{type(e).__name__}: {e}"[:200])
+                continue
+            seconds.append(time.perf_counter() - t)
+            status = mj.Status(int(estimate.status))
+            statuses.append(status)
+            wrench = np.asarray(estimate.wrench, dtype=float)
+            if status in BELIEVED and kind == "invalid":
+                accepted_fz.append(abs(float(wrench[2])))
+                accepted_over_range.append(float(np.max(np.abs(wrench) / ranges)))
+            if status in BELIEVED and truth is not None:
+                loaded_error.append(float(np.max(np.abs(wrench - truth) / ranges)))
+        believed = sum(s in BELIEVED for s in statuses)
+        counts = {s.name.lower(): statuses.count(s) for s in mj.Status if s in statuses}
+        entry: dict = {"kind": kind, "frames": len(frames), "status_counts": counts, "crashes": crashes}
+        if kind == "invalid":
+            entry["false_accepts"] = believed
+            entry["false_accept_rate"] = believed / len(frames)
+            entry["accepted_abs_fz_n"] = _stats(accepted_fz)
+            entry["accepted_max_abs_wrench_over_range"] = _stats(accepted_over_range)
+        elif kind == "loaded":
+            entry["false_rejects"] = len(frames) - believed
+            entry["false_reject_rate"] = (len(frames) - believed) / len(frames)
+            entry["believed_max_error_over_range"] = _stats(loaded_error)
+        else:
+            missed = len(frames) - statuses.count(mj.Status.NO_CONTACT)
+            entry["false_rejects"] = missed
+            entry["false_reject_rate"] = missed / len(frames)
+        if errors:
+            entry["errors"] = errors[:3]
+        report[case] = entry
+    return report, seconds
+
+
+def _png_faults(rng: np.random.Generator, good: bytes) -> dict[str, bytes]:
+    """Corrupted versions of the PNG bytes `good`."""
+    flipped = bytearray(good)
+    for i in rng.integers(64, len(good), 64):
+        flipped[i] ^= 1 << int(rng.integers(8))
+    return {
+        "truncated": good[: len(good) * 2 // 5],
+        "bit_flipped": bytes(flipped),
+        "empty": b"",
+        "header_only": good[:33],
+        "garbage": rng.bytes(len(good) // 4),
+    }
+
+
+def _run_cli(argv: list[str]) -> dict:
+    """Run `moirejax` in-process; what came back, and whether it crashed."""
+    from moirejax.cli import main
+
+    stderr = io.StringIO()
+    escaped = None
+    code: int | str | None
+    with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            code = main(argv)
+        except SystemExit as e:
+            code = e.code
+        except BaseException as e:  # a crash is what the benchmark counts
+            code, escaped = None, f"{type(e).__name__}: {e}"[:200]
+    text = stderr.getvalue()
+    crashed = escaped is not None or "Traceback" in text or code not in EXIT_CODES
+    return {"exit": code, "crashed": crashed, "escaped": escaped, "stderr": text.strip().splitlines()[-1:]}
+
+
+def _read_out(path: Path) -> dict[str, str] | None:
+    if not path.exists():
+        return None
+    with open(path, newline="") as f:
+        return {row["frame"]: row["status"] for row in csv.DictReader(f)}
+
+
+def _file_cases(rng, device, loaded, unloaded, schedule, tmp: Path) -> dict:
+    """File-level faults through `moirejax invert`."""
+    device_file = tmp / "mid.json"
+    mj.save_device(device_file, device)
+    to8 = [np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in (*unloaded[:2], *loaded[:2])]
+    good = cv2.imencode(".png", to8[2])[1].tobytes()
+    faults = _png_faults(rng, good)
+    runs: dict = {}
+
+    # A dataset: two contact-free frames (the first truncated, so the reference falls back to
+    # the second), two good loaded frames and one loaded frame per fault.
+    dataset = tmp / "dataset"
+    with mj.DatasetWriter(dataset, device=mj.device_to_json(device)) as writer:
+        names = [writer.add(f, np.zeros(6), contact=0) for f in to8[:2]]
+        names += [writer.add(f, schedule.wrench[i], contact=1) for i, f in enumerate(to8[2:])]
+        corrupt = {writer.add(to8[2], schedule.wrench[0], contact=1): kind for kind in faults}
+    (dataset / "frames" / names[0]).write_bytes(faults["truncated"])
+    for name, kind in corrupt.items():
+        (dataset / "frames" / name).write_bytes(faults[kind])
+    corrupt[names[0]] = "truncated reference"
+    runs["dataset"] = (["--data", str(dataset)], len(names) + len(faults), corrupt)
+
+    # A folder of frames, with a good --reference image.
+    folder = tmp / "folder"
+    folder.mkdir()
+    cv2.imwrite(str(tmp / "reference.png"), to8[1])
+    for i, f in enumerate(to8[2:]):
+        cv2.imwrite(str(folder / f"good{i}.png"), f)
+    odd = {"wrong_size.png": to8[2][:256, :300], "rgb.png": np.repeat(to8[2][..., None], 3, axis=2)}
+    odd["sixteen_bit.png"] = to8[2].astype(np.uint16) * 257
+    for name, image in odd.items():
+        cv2.imwrite(str(folder / name), image)
+    folder_corrupt = {f"{kind}.png": kind for kind in faults}
+    for name, kind in folder_corrupt.items():
+        (folder / name).write_bytes(faults[kind])
+    folder_corrupt["wrong_size.png"] = "wrong size"
+    runs["folder"] = (
+        ["--data", str(folder), "--reference", str(tmp / "reference.png")],
+        2 + len(odd) + len(faults),
+        folder_corrupt,
+    )
+
+    # Failures before the work: a truncated --reference and a truncated manifest.
+    (tmp / "bad_reference.png").write_bytes(faults["truncated"])
+    runs["truncated_reference"] = (["--data", str(folder), "--reference", str(tmp / "bad_reference.png")], 0, {})
+    broken = tmp / "broken"
+    broken.mkdir()
+    (broken / "frames").symlink_to(dataset / "frames")
+    (broken / "wrench.csv").write_bytes((dataset / "wrench.csv").read_bytes())
+    manifest = (dataset / "manifest.json").read_bytes()
+    (broken / "manifest.json").write_bytes(manifest[: len(manifest) // 2])
+    runs["truncated_manifest"] = (["--data", str(broken)], 0, {})
+
+    report: dict = {}
+    for case, (data_args, expected_rows, corrupt_names) in runs.items():
+        out = tmp / f"{case}.csv"
+        t = time.perf_counter()
+        result = _run_cli(["invert", "--device", str(device_file), *data_args, "--out", str(out), "--quiet"])
+        result["seconds"] = round(time.perf_counter() - t, 1)
+        rows = _read_out(out)
+        if expected_rows:
+            result["rows"] = None if rows is None else len(rows)
+            result["lost_output"] = rows is None or len(rows) < expected_rows
+            statuses = {} if rows is None else {n: rows.get(n, "missing") for n in corrupt_names}
+            result["corrupt_statuses"] = {corrupt_names[n]: s for n, s in statuses.items()}
+            result["corrupt_believed"] = sum(s in ("converged", "max_steps") for s in statuses.values())
+        else:
+            # Must fail as bad input (exit 3), in one line, before writing anything.
+            result["lost_output"] = False
+            result["wrong_exit"] = result["exit"] != 3
+            result["wrote_output"] = rows is not None
+        report[case] = result
+    report["crashes"] = sum(r["crashed"] for r in report.values())
+    report["lost_outputs"] = sum(r["lost_output"] for r in report.values() if isinstance(r, dict))
+    report["corrupt_believed"] = sum(r.get("corrupt_believed", 0) for r in report.values() if isinstance(r, dict))
+    return report
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=8, help="random instances per case")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", action="store_true", help="one line of JSON")
+    parser.add_argument("--no-files", action="store_true", help="skip the file-level faults (two compiles)")
+    args = parser.parse_args(argv)
+    if args.n < 2:
+        parser.error("--n must be >= 2")
+    rng = np.random.default_rng(args.seed)
+    key = jr.PRNGKey(args.seed)
+    start = time.perf_counter()
+
+    device = mj.preset("mid")
+    shape = (device.height, device.width)
+    fabrication = jr.PRNGKey(args.seed + 1000)
+    render = _render(device, fabrication)
+    schedule = mj.load_schedule("mixed", args.n, seed=args.seed)
+
+    def unit_frames(key, wrenches, contacts, draw=render):
+        keys = jr.split(key, len(wrenches))
+        return [
+            np.asarray(draw(k, jnp.asarray(w), float(x0), float(y0), float(r)), dtype=np.float64)
+            for k, w, (x0, y0, r) in zip(keys, wrenches, contacts)
+        ]
+
+    contacts = list(zip(schedule.x0, schedule.y0, schedule.radius))
+    k_ref, k_loaded, k_free, k_other = jr.split(key, 4)
+    zeros = [np.zeros(6)] * args.n
+    centred = [(0.0, 0.0, 3.5)] * args.n
+    reference = np.mean(unit_frames(k_ref, zeros[:4], centred[:4]), axis=0)
+    loaded = unit_frames(k_loaded, schedule.wrench, contacts)
+    unloaded = unit_frames(k_free, zeros, centred)
+    # The wrong unit: the other two designs under the same loads (half each).
+    other = []
+    for i, name in enumerate(("dense", "sparse")):
+        draw = _render(mj.preset(name), jr.fold_in(fabrication, i))
+        picks = list(range(i, args.n, 2))
+        other += unit_frames(jr.fold_in(k_other, i), schedule.wrench[picks], [contacts[j] for j in picks], draw)
+    render_s = time.perf_counter() - start
+
+    def noisy(frame):
+        return np.round(np.clip(frame, 0, 1) * 255) / 255
+
+    def rolled(frame):
+        dy, dx = rng.integers(3, 13, 2) * rng.choice([-1, 1], 2)
+        return np.roll(frame, (int(dy), int(dx)), axis=(0, 1))
+
+    def with_nan(frame):
+        frame = frame.copy()
+        frame.flat[rng.choice(frame.size, frame.size // 200, replace=False)] = np.nan
+        return frame
+
+    n = args.n
+    none = [None] * n
+    cases = {
+        "valid_loaded": ("loaded", loaded, list(schedule.wrench)),
+        "valid_unloaded": ("unloaded", unloaded, none),
+        "uniform_noise": ("invalid", [noisy(rng.uniform(0, 1, shape)) for _ in range(n)], none),
+        "gaussian_noise": ("invalid", [noisy(rng.normal(0.5, 0.15, shape)) for _ in range(n)], none),
+        "natural_image": ("invalid", [_natural(rng, shape) for _ in range(n)], none),
+        "wrong_unit": ("invalid", other, none),
+        "black": ("invalid", [noisy(np.abs(rng.normal(0, 0.01, shape))) for _ in range(n)], none),
+        "white": ("invalid", [noisy(1 - np.abs(rng.normal(0, 0.01, shape))) for _ in range(n)], none),
+        "overexposed": ("invalid", [noisy(4 * f) for f in loaded], none),
+        "occluded_half": ("invalid", [noisy(_blob(rng, f)) for f in loaded], none),
+        "rolled": ("invalid", [rolled(f) for f in loaded], none),
+        "nan_pixels": ("invalid", [with_nan(f) for f in loaded], none),
+    }
+
+    t = time.perf_counter()
+    inverter = mj.Inverter(device, reference)
+    jax.block_until_ready(mj.invert_frame(inverter, jnp.asarray(loaded[0], jnp.float32)).wrench)
+    compile_s = time.perf_counter() - t
+    frames_report, seconds = _invert_cases(inverter, cases)
+
+    invalid = [c for c in frames_report.values() if c["kind"] == "invalid"]
+    valid = [c for c in frames_report.values() if c["kind"] != "invalid"]
+    report: dict = {
+        "n": n,
+        "seed": args.seed,
+        "model_grid": list(inverter.model_shape),
+        "summary": {
+            "invalid_frames": sum(c["frames"] for c in invalid),
+            "false_accepts": sum(c["false_accepts"] for c in invalid),
+            "false_accept_rate": sum(c["false_accepts"] for c in invalid) / sum(c["frames"] for c in invalid),
+            "valid_frames": sum(c["frames"] for c in valid),
+            "false_rejects": sum(c["false_rejects"] for c in valid),
+            "false_reject_rate": sum(c["false_rejects"] for c in valid) / sum(c["frames"] for c in valid),
+            "crashes": sum(c["crashes"] for c in frames_report.values()),
+            "cases_with_false_accepts": [k for k, c in frames_report.items() if c.get("false_accepts")],
+        },
+        "cases": frames_report,
+    }
+    if not args.no_files:
+        with tempfile.TemporaryDirectory(prefix="bad-frames-") as tmp:
+            report["files"] = _file_cases(rng, device, loaded, unloaded, schedule, Path(tmp))
+    report.update(
+        median_ms=float(np.median(seconds) * 1e3),
+        p90_ms=float(np.percentile(seconds, 90) * 1e3),
+        compile_s=compile_s,
+        render_s=render_s,
+        elapsed_s=time.perf_counter() - start,
+        peak_memory_gb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+    )
+    print(json.dumps(report, indent=None if args.json else 1))
+
+
+if __name__ == "__main__":
+    main()
