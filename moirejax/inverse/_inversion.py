@@ -93,6 +93,10 @@ _UNEXPLAINED = 0.004
 # share of its change from the reference (also above the noise) is one the model does not
 # explain.
 _UNEXPLAINED_SHARE = 0.5
+# A fit needing more than this many calibrated ranges on any axis (12 N of normal force) is
+# not a load the model describes either: a foreign scene, another unit, a moved camera or an
+# occlusion is "explained" by an absurd load as readily as by a small one.
+_IMPLAUSIBLE_RANGES = 10.0
 # Window (mm, Gaussian sd) over which the phase change is averaged to detect a contact.
 _CONTACT_WINDOW = 2.0
 
@@ -123,8 +127,9 @@ _MESSAGES = {
     Status.WRONG_SIZE: "frame has the wrong size for this device; no wrench",
     Status.UNREADABLE: "frame could not be read or decoded; no wrench",
     Status.UNEXPLAINED: (
-        "in contact, but the model explains less than half of how the fringe phase changed; the wrench is the "
-        "best fit and may be far off (a contact, unit or scene the model does not describe)"
+        "in contact, but the model explains less than half of how the fringe phase changed, or only with a load "
+        "ten times its calibrated range; the wrench is the best fit and may be far off (a contact, unit, scene "
+        "or camera pose the model does not describe)"
     ),
 }
 
@@ -788,7 +793,8 @@ class Inverter(eqx.Module):
         noise_cost = (screen.noise_variance + self.reference_noise) * jnp.sum(self.unit_phase_noise)
         left = jnp.sum(r_data[size : 2 * size] ** 2) - noise_cost
         change = jnp.sum(r_zero[size : 2 * size] ** 2) - noise_cost
-        unexplained = left > _UNEXPLAINED_SHARE * jnp.maximum(change, 0.0)
+        implausible = jnp.any(jnp.abs(y_out[:6]) > _IMPLAUSIBLE_RANGES)
+        unexplained = (left > _UNEXPLAINED_SHARE * jnp.maximum(change, 0.0)) | implausible
         # An unexplained frame keeps its wrench and covariance, and a converged one still
         # seeds the next frame of a stream: the flag is for the user, not the solver.
         ok = (status == Status.CONVERGED) | (status == Status.MAX_STEPS)
