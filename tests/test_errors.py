@@ -323,10 +323,8 @@ def test_interrupted_overwrite_keeps_the_old_dataset(device_file, tmp_path, monk
             raise KeyboardInterrupt
         return real_add(self, *a, **k)
 
-    monkeypatch.setattr(DatasetWriter, "add", add)
-    _recording(tmp_path / "rec2", n=5)
-    with pytest.raises(KeyboardInterrupt):
-        mj.import_recording(
+    def reimport():
+        return mj.import_recording(
             tmp_path / "rec2" / "images",
             tmp_path / "rec2" / "ft.csv",
             str(device_file),
@@ -334,18 +332,16 @@ def test_interrupted_overwrite_keeps_the_old_dataset(device_file, tmp_path, monk
             progress=False,
             overwrite=True,
         )
+
+    monkeypatch.setattr(DatasetWriter, "add", add)
+    _recording(tmp_path / "rec2", n=5)
+    with pytest.raises(KeyboardInterrupt):
+        reimport()
     after = {p.relative_to(tmp_path): p.read_bytes() for p in (tmp_path / "ds").rglob("*") if p.is_file()}
     assert after == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds", "mid.json", "rec", "rec2"]
     monkeypatch.setattr(DatasetWriter, "add", real_add)
-    mj.import_recording(
-        tmp_path / "rec2" / "images",
-        tmp_path / "rec2" / "ft.csv",
-        str(device_file),
-        args[3],
-        progress=False,
-        overwrite=True,
-    )
+    reimport()
     assert len(mj.open_dataset(tmp_path / "ds")) == 5
 
 
