@@ -17,6 +17,9 @@ import pytest
 import moirejax as mj
 
 
+# One worker inverts the frames once for every test here.
+pytestmark = pytest.mark.xdist_group("peer")
+
 DATA = Path(__file__).parent / "data" / "peer"
 AXES = mj.WRENCH_AXES
 

@@ -3,18 +3,24 @@ r"""Calibration: fit a unit's physical parameters to frames with reference wrenc
 The unknowns are a small set of physical parameters shared by every frame (a *recipe*
 names them: pitches, angles, separation, stiffness, optical gains) and, per frame, the
 latent contact (centre, radius) and exposure. The wrench of every frame is known. The
-fit alternates two least-squares problems, each solved with optimistix:
+residual is the inversion's own ([`Inverter.band_residual`][]). The fit alternates
+least-squares problems, each solved with optimistix:
 
-1. the shared parameters, with the latents fixed, over a subset of frames
-   (Levenberg–Marquardt; a dense Jacobian of a few hundred thousand rows by ~9 columns);
-2. the latents of every frame, with the parameters fixed (a vmapped 4-unknown solve).
+1. the mechanical and geometric parameters, with the latents fixed, over a subset of
+   frames, on the fringe phase alone ([`Inverter.phase_only`][]): the quantity the
+   inversion reads the load from, and the one a unit's photometry (contrast, defocus,
+   lighting) cannot move;
+2. the photometric parameters (`optics.*`: gains, glow, rim, defocus), the others held,
+   on the whole residual (fringe amplitude and brightness too);
+3. the contact centre and radius of every frame, with the parameters fixed, on the fringe
+   phase (a vmapped 3-unknown solve; the exposure is held at its start).
 
 Parameters that must stay positive are fitted in log space. A recipe may put a Gaussian
 prior on a parameter around its starting value; its residual is scaled by the data's own
 noise level (a robust estimate from the residuals), so the prior weighs as many frames'
 worth of evidence whatever the camera noise. The uncertainties come from the
-Gauss–Newton information of step 1 at the end (prior included), scaled by the residual
-variance.
+Gauss–Newton information of steps 1 and 2 at the end (prior included), scaled by the
+residual variance; the covariance between the two blocks is not estimated.
 """
 
 import dataclasses
@@ -34,7 +40,7 @@ import optimistix as optx
 from .._conventions import NMM_PER_NM
 from .._fileio import DataError, read_json
 from ..inverse import Inverter
-from ..observe import band_model, BandModel, complex_ratio, FringeFields
+from ..observe import band_model, BandModel, FringeFields
 from ..physics import Contact, Device, Elastomer, Optics
 
 
@@ -157,6 +163,13 @@ def latents_from_wrench(wrench: np.ndarray) -> np.ndarray:
     return np.stack([x0, y0, np.full_like(x0, math.log(3.5)), np.zeros_like(x0)], axis=1)
 
 
+def _photometric(name: str) -> bool:
+    """Whether a device field is photometric (of the optics: gains, glow, rim, defocus), which
+    calibration fits to the fringe amplitude and brightness, rather than mechanical or
+    geometric, which it fits to the fringe phase alone."""
+    return name.startswith("optics.")
+
+
 class _Problem(eqx.Module):
     inverter: Inverter
     recipe_free: tuple[str, ...] = eqx.field(static=True)
@@ -173,60 +186,70 @@ class _Problem(eqx.Module):
         return band_model(self.device(theta), inv.demodulator, inv.model_shape, inv.reference.reference_wavevector)
 
     def frame_residuals(self, model: BandModel, latent, wrench, observed: FringeFields, model_reference: FringeFields):
-        inv = self.inverter
         contact = Contact(x0=latent[0], y0=latent[1], radius=jnp.exp(latent[2]))
         predicted = model(wrench, contact, jnp.exp(latent[3]))
-        fringe = predicted.fringe * complex_ratio(inv.reference.fringe, model_reference.fringe)
-        brightness = predicted.brightness - model_reference.brightness + inv.reference.brightness
-        df = (observed.fringe - fringe) * inv.fringe_weight.astype(fringe.dtype)
-        db = (observed.brightness - brightness) * inv.brightness_weight
         # A weak prior keeps the radius of light contacts from running off.
         prior = (latent[2] - math.log(3.5)) / 0.6 * 1e-3
-        return jnp.concatenate([df.real.ravel(), df.imag.ravel(), db.ravel(), prior[None]])
+        return jnp.concatenate([self.inverter.band_residual(observed, predicted, model_reference), prior[None]])
 
 
 def _zero_load(model: BandModel) -> FringeFields:
     return model(jnp.zeros(6, model.x.dtype), Contact())
 
 
+def _robust_scale(r: jax.Array) -> jax.Array:
+    """Standard deviation of the informative residuals (those a zero weight does not blank),
+    from their median absolute value."""
+    informative = r != 0
+    scale = jnp.nanmedian(jnp.where(informative, jnp.abs(r), jnp.nan)) / 0.6745
+    return jnp.where(jnp.any(informative), scale, 1.0)
+
+
 @eqx.filter_jit
-def _parameter_solve(problem: _Problem, theta, latents, wrenches, observed, prior_mean, prior_weight, steps: int):
-    def data_residuals(theta, args):
+def _parameter_solve(
+    problem: _Problem, theta, free: tuple[int, ...], latents, wrenches, observed, prior_mean, prior_weight, steps: int
+):
+    """Levenberg–Marquardt over the entries `free` of `theta`, the others held."""
+    index = jnp.asarray(free)
+
+    def data_residuals(sub, args):
         latents, wrenches, observed = args
-        model = problem.model(theta)
+        model = problem.model(theta.at[index].set(sub))
         per_frame = jax.vmap(problem.frame_residuals, in_axes=(None, 0, 0, 0, None))(
             model, latents, wrenches, observed, _zero_load(model)
         )
         return per_frame.ravel()
 
     data = (latents, wrenches, observed)
-    noise = jax.lax.stop_gradient(jnp.median(jnp.abs(data_residuals(theta, data))) / 0.6745)
+    start = theta[index]
+    noise = jax.lax.stop_gradient(_robust_scale(data_residuals(start, data)))
 
-    def residuals(theta, args):
-        prior = (theta - prior_mean) * prior_weight * noise
-        return jnp.concatenate([data_residuals(theta, args), prior])
+    def residuals(sub, args):
+        prior = (sub - prior_mean[index]) * prior_weight[index] * noise
+        return jnp.concatenate([data_residuals(sub, args), prior])
 
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-7, linear_solver=lx.QR())
-    sol = optx.least_squares(residuals, solver, theta, args=data, max_steps=steps, throw=False)
+    sol = optx.least_squares(residuals, solver, start, args=data, max_steps=steps, throw=False)
     r = data_residuals(sol.value, data)
     J = jax.jacfwd(residuals)(sol.value, data)
-    dof = r.size - theta.size - 4 * latents.shape[0]
+    dof = (jnp.sum(r != 0) - sol.value.size - 3 * latents.shape[0]).astype(r.dtype)
     covariance = jnp.linalg.pinv(J.T @ J, hermitian=True) * jnp.sum(r**2) / dof
-    return sol.value, covariance, jnp.sum(r**2)
+    return theta.at[index].set(sol.value), covariance, jnp.sum(r**2)
 
 
 @eqx.filter_jit
 def _latent_solve(problem: _Problem, theta, latents, wrenches, observed, steps: int):
+    """Every frame's contact centre and radius, on the fringe phase; the exposure is held."""
     model = problem.model(theta)
     reference = _zero_load(model)
 
     def one(latent, wrench, obs):
-        def residuals(latent, args):
-            return problem.frame_residuals(model, latent, wrench, obs, reference)
+        def residuals(contact, args):
+            return problem.frame_residuals(model, latent.at[:3].set(contact), wrench, obs, reference)
 
         solver = optx.LevenbergMarquardt(rtol=1e-5, atol=1e-6, linear_solver=lx.QR())
-        sol = optx.least_squares(residuals, solver, latent, max_steps=steps, throw=False)
-        return sol.value
+        sol = optx.least_squares(residuals, solver, latent[:3], max_steps=steps, throw=False)
+        return latent.at[:3].set(sol.value)
 
     return jax.vmap(one)(latents, wrenches, observed)
 
@@ -271,7 +294,18 @@ def fit_physical_parameters(
     observed = jax.lax.map(inverter.observe, jnp.asarray(frames, dtype=dtype))
     wrenches_j = jnp.asarray(wrenches, dtype=dtype)
     latents = jnp.asarray(latents_from_wrench(np.asarray(wrenches)), dtype=dtype)
-    problem = _Problem(inverter, recipe.free, recipe.log)
+    # The mechanics and geometry are fitted to the fringe phase, which a unit's photometry
+    # cannot move; the photometric parameters to the whole residual, the others held.
+    phase = _Problem(inverter.phase_only(), recipe.free, recipe.log)
+    whole = _Problem(inverter, recipe.free, recipe.log)
+    stages = [
+        (name, problem, free)
+        for name, problem, free in (
+            ("phase", phase, tuple(i for i, n in enumerate(recipe.free) if not _photometric(n))),
+            ("photometric", whole, tuple(i for i, n in enumerate(recipe.free) if _photometric(n))),
+        )
+        if free
+    ]
     theta = parameter_vector(inverter.device, recipe)
     prior_mean = theta
     sd = dict(recipe.prior_sd)
@@ -279,30 +313,35 @@ def fit_physical_parameters(
     rng = np.random.default_rng(seed)
     n = len(frames)
     history = []
-    covariance = jnp.zeros((theta.size, theta.size), dtype)
-    bar = tqdm(total=recipe.rounds * 2 + 1, desc="calibrate", disable=not progress)
-    latents = _latent_solve(problem, theta, latents, wrenches_j, observed, recipe.latent_steps)
+    covariance = np.zeros((theta.size, theta.size))
+    bar = tqdm(total=recipe.rounds * (len(stages) + 1) + 1, desc="calibrate", disable=not progress)
+    latents = _latent_solve(phase, theta, latents, wrenches_j, observed, recipe.latent_steps)
     bar.update()
     for round_ in range(recipe.rounds):
         subset = np.sort(rng.choice(n, size=min(n, recipe.parameter_frames), replace=False))
         observed_subset = jax.tree_util.tree_map(lambda a, s=subset: a[s], observed)
-        theta, covariance, cost = _parameter_solve(
-            problem,
-            theta,
-            latents[subset],
-            wrenches_j[subset],
-            observed_subset,
-            prior_mean,
-            prior_weight,
-            recipe.parameter_steps,
-        )
+        costs = {}
+        for name, problem, free in stages:
+            theta, block, cost = _parameter_solve(
+                problem,
+                theta,
+                free,
+                latents[subset],
+                wrenches_j[subset],
+                observed_subset,
+                prior_mean,
+                prior_weight,
+                recipe.parameter_steps,
+            )
+            covariance[np.ix_(free, free)] = np.asarray(block)
+            costs[f"{name}_cost"] = float(cost)
+            bar.update()
+        latents = _latent_solve(phase, theta, latents, wrenches_j, observed, recipe.latent_steps)
         bar.update()
-        latents = _latent_solve(problem, theta, latents, wrenches_j, observed, recipe.latent_steps)
-        bar.update()
-        history.append({"round": round_, "cost": float(cost)})
-        bar.set_postfix(cost=f"{float(cost):.3g}")
+        history.append({"round": round_, **costs})
+        bar.set_postfix({k: f"{v:.3g}" for k, v in costs.items()})
     bar.close()
-    device = problem.device(theta)
+    device = phase.device(theta)
     values = [_getter(name)(device) for name in recipe.free]
     sd = np.sqrt(np.clip(np.diag(np.asarray(covariance)), 0, None))
     # Log-space sd to the parameter's own units (first order: sd * value).

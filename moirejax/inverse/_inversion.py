@@ -403,12 +403,27 @@ class Inverter(eqx.Module):
             ]
         )
 
-    def _data_residuals(self, y, observed: FringeFields):
-        predicted = self._predict(y)
-        # Fixed-pattern correction by the reference frame (see the module docstring).
-        fringe = predicted.fringe * complex_ratio(self.reference.fringe, self.model_reference.fringe)
-        brightness = predicted.brightness - self.model_reference.brightness + self.reference.brightness
+    def band_residual(
+        self, observed: FringeFields, predicted: FringeFields, model_reference: FringeFields | None = None
+    ) -> Float[Array, " n"]:
+        """The whitened residual of `observed` bands against `predicted` ones, the one misfit
+        that inversion and calibration both minimise.
+
+        The prediction is first corrected for the unit's fixed pattern: scaled by this unit's
+        reference bands over the model's no-load bands (`model_reference`, by default those of
+        this inverter's model; calibration passes those of the parameters it is trying).
+        Layout: the fringe change along the predicted fringe phasor at every coarse-grid point
+        (amplitude), across it (phase), then the brightness change, each with this inverter's
+        weights ([`Inverter.phase_only`][] zeroes all but the phase).
+        """
+        if model_reference is None:
+            model_reference = self.model_reference
+        fringe = predicted.fringe * complex_ratio(self.reference.fringe, model_reference.fringe)
+        brightness = predicted.brightness - model_reference.brightness + self.reference.brightness
         return self._band_residual(observed.fringe - fringe, observed.brightness - brightness, fringe)
+
+    def _data_residuals(self, y, observed: FringeFields):
+        return self.band_residual(observed, self._predict(y))
 
     def _prior_residuals(self, y, noise):
         wrench, contact, _ = _unpack(y)
@@ -825,7 +840,7 @@ class Inverter(eqx.Module):
         )
         return estimate, track
 
-    def _fitting(self, light) -> "Inverter":
+    def phase_only(self, light: float | Float[Array, ""] = 1.0) -> "Inverter":
         """This inverter with a residual of the fringe phase alone (the weights of the
         brightness and of the fringes' amplitude, and their shares of the unit-noise draws,
         set to zero), and the light a contact scatters (glow and rim) scaled by `light` in
@@ -861,9 +876,9 @@ class Inverter(eqx.Module):
         )
 
     def _fit_for(self, light) -> "Inverter":
-        """The problem a solution is refined on: [`Inverter._fitting`][] with the contact light
+        """The problem a solution is refined on: [`Inverter.phase_only`][] with the contact light
         scaled by `light`, or this inverter itself when it fits the brightness."""
-        return self if self.brightness else self._fitting(light)
+        return self if self.brightness else self.phase_only(light)
 
     def _solve_cold(self, y0, args, *, more_starts: bool):
         """Levenberg–Marquardt on the full residual from `y0` (the brightness places a cold
@@ -875,13 +890,13 @@ class Inverter(eqx.Module):
         y, r, jacobian, steps, result = self._levenberg_marquardt(y0, args, more_starts=more_starts)
         if self.brightness:
             return y, r, jacobian, steps, result, jnp.ones((), y.dtype)
-        zero_cost = jnp.sum(self._fitting(1.0)._zero_residuals(args[0]) ** 2)
+        zero_cost = jnp.sum(self.phase_only(1.0)._zero_residuals(args[0]) ** 2)
 
         def refine(more, light):
             # The device's light first; the second refinement (no light) tries further
             # starts only when the first leaves the frame poorly explained: a unit that
             # glows as the device says is done in a few steps, one that does not needs them.
-            y_, r_, jacobian_, steps_, result_ = self._fitting(light)._levenberg_marquardt(y, args, more_starts=more)
+            y_, r_, jacobian_, steps_, result_ = self.phase_only(light)._levenberg_marquardt(y, args, more_starts=more)
             poor = jnp.sum(r_[:-N_PRIORS] ** 2) > _UNEXPLAINED * zero_cost
             return more_starts & poor, (y_, r_, jacobian_, steps_, result_)
 
@@ -982,7 +997,28 @@ class Inverter(eqx.Module):
             usable = jnp.all(jnp.isfinite(init))
             warm = jnp.where(usable, init, cold)
             y0, _ = self._best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
-        y, r, jacobian, steps, result, light = self._solve_cold(y0, args, more_starts=True)
+
+        def solved(_):
+            return self._solve_cold(y0, args, more_starts=True)
+
+        def skipped(_):
+            # No load to find: the unknowns stay at zero load, where the Jacobian still gives
+            # the interval of a load the noise could hide.
+            fit = self._fit_for(1.0)
+            y = y0.at[:6].set(0.0)
+            steps = jnp.zeros((), jax.eval_shape(solved, None)[3].dtype)
+            light = jnp.ones((), y.dtype)
+            return y, fit.residuals(y, args), fit._data_jacobian(y, observed), steps, optx.RESULTS.successful, light
+
+        # A frame without contact, or one the screen refuses, is not solved: its status sets
+        # the wrench (zero, or NaN) whatever a solver would return.
+        needed = (
+            screen.finite
+            & ~screen.dark
+            & ~screen.saturated
+            & (self._phase_change_statistic(observed, screen) > self.contact_threshold)
+        )
+        y, r, jacobian, steps, result, light = jax.lax.cond(needed, solved, skipped, None)
         fit = self._fit_for(light)
         return fit._finish(screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, y0)[0]
 

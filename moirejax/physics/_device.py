@@ -250,8 +250,10 @@ def device_to_json(device: Device, *, extra: dict[str, Any] | None = None) -> di
     return out
 
 
-def device_from_json(obj: dict[str, Any], *, source: str = "<memory>") -> Device:
-    """Inverse of [`device_to_json`][]; validates against `data_schema/device.schema.json`."""
+def device_from_json(obj: Any, *, source: str = "<memory>") -> Device:
+    """Inverse of [`device_to_json`][]. `obj` is any parsed JSON value: it is validated
+    against `data_schema/device.schema.json`, and anything else than a device object raises
+    [`DataError`][moirejax.DataError] naming `source` and the field."""
     validate_json(obj, "device", source=source)
     kwargs: dict[str, Any] = {name: obj[name] for name in _GEOMETRY_FIELDS if name in obj}
     for name in ("height", "width", "layout", "harmonics"):
