@@ -56,15 +56,22 @@ def dataset_reference(dataset: Dataset, limit: int = 16) -> np.ndarray:
     return np.mean(frames, axis=0)
 
 
-def invert_frames(inverter: Inverter, frames, *, progress: bool = True, desc: str = "invert") -> dict[str, np.ndarray]:
-    """Invert frames one by one (cold starts); arrays of wrench, sigma, contact, status."""
+def invert_frames(
+    inverter: Inverter, frames, *, init: np.ndarray | None = None, progress: bool = True, desc: str = "invert"
+) -> dict[str, np.ndarray]:
+    """Invert frames one by one; arrays of wrench, sigma, contact, status.
+
+    Cold starts, unless `init` gives every frame's start ([`Estimate.state`][moirejax.Estimate]
+    layout, one row per frame; a non-finite row is a cold start)."""
     from tqdm.auto import tqdm
 
-    cold = jnp.full(10, jnp.nan, dtype=inverter.device.p1.dtype)
+    dtype = inverter.device.p1.dtype
+    cold = jnp.full(10, jnp.nan, dtype=dtype)
     out: dict[str, list] = {k: [] for k in ("wrench", "sigma", "x0", "y0", "radius", "status")}
-    for frame in tqdm(frames, desc=desc, unit="frame", disable=not progress):
+    for i, frame in enumerate(tqdm(frames, desc=desc, unit="frame", disable=not progress)):
+        start = cold if init is None else jnp.asarray(init[i], dtype)
         # uint8/uint16 frames (a camera's) are scaled to [0, 1], not read as saturated.
-        estimate = invert_frame(inverter, jnp.asarray(unit_frame(frame)), cold)
+        estimate = invert_frame(inverter, jnp.asarray(unit_frame(frame)), start)
         out["wrench"].append(np.asarray(estimate.wrench))
         out["sigma"].append(np.asarray(estimate.sigma))
         out["x0"].append(float(estimate.contact.x0))
@@ -405,7 +412,12 @@ def calibrate(
         )
     result = fit_physical_parameters(nominal, reference, frames, wrenches, recipe, progress=progress)
     inverter = Inverter(result.device, reference=reference, match_reference=False)
-    physical = invert_frames(inverter, frames, progress=progress, desc="invert calibration frames")
+    # Each calibration frame starts from its reference wrench and the contact the fit found
+    # for it: the solve ends at the optimum of the residual that a cold start reaches when it
+    # finds the right basin, in a few steps, and the head learns the physics' systematic
+    # error there rather than the solver's misses.
+    known = np.concatenate([wrenches / WRENCH_SCALE, result.latents], axis=1)
+    physical = invert_frames(inverter, frames, init=known, progress=progress, desc="invert calibration frames")
     ok = np.all(np.isfinite(physical["wrench"]), axis=1) & (physical["status"] != Status.NO_CONTACT)
     features = head_features(physical["wrench"][ok], physical["x0"][ok], physical["y0"][ok], physical["radius"][ok])
     if ok.sum() >= MIN_HEAD_FRAMES:
