@@ -103,7 +103,9 @@ _CONTACT_WINDOW = 2.0
 # weighted mean of the unit phasors of their ratio) for the frame to show this unit's
 # fringes. A contact moves the phase near itself and leaves the far field: the renderer's
 # and the independent renderer's frames inside the paper's ranges keep 0.89 or more, a
-# 10 N press 0.70. Natural images and noise in their place keep 0.1-0.5.
+# 10 N press 0.70, and with a natural scene seen through the sensor (multiplying the
+# fringes, or adding up to 60% of the image) 0.66 or more. Natural images and noise in
+# their place keep 0.1-0.5.
 _FRINGE_AGREEMENT = 0.5
 
 
