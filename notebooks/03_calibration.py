@@ -193,7 +193,8 @@ summary = calibrate(nominal_json, calibration_dir, fit_json, recipe=RECIPE, base
 print(f"calibrated in {time.perf_counter() - start:.0f} s; wrote {fit_json.name}, {Path(summary['report']).name}/")
 report = Path(summary["report"])
 written = json.loads((report / "metrics.json").read_text())
-print("cost per round:", [f"{h['cost']:.4g}" for h in written["history"]])
+for h in written["history"]:
+    print(f"round {h['round']}: " + ", ".join(f"{k} {v:.4g}" for k, v in h.items() if k != "round"))
 head_name = json.loads(fit_json.read_text())["calibration"]["residual_head"]
 print(format_metrics(summary["physics_only"], title="\nphysics only, calibration frames (in-sample)"))
 if head_name is not None:
