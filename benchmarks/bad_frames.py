@@ -20,8 +20,9 @@ draws `--n` random instances:
 Per case: the count of each status, the false-accept rate (invalid frames with a believed
 wrench) or false-reject rate, crashes (exceptions escaping `invert_frame`), and, for the
 invalid frames that were believed, the median and maximum of |Fz| and of the largest
-|wrench axis| / that axis' calibrated range (`mj.axis_ranges`). `unexplained` keeps a
-flagged wrench and counts as not believed.
+|wrench axis| / that axis' calibrated range (`mj.axis_ranges`), and, for those made from a
+loaded frame (overexposed, occluded, rolled, NaN pixels), the largest error against that
+load over the range. `unexplained` keeps a flagged wrench and counts as not believed.
 
 Unless `--no-files`, file-level faults go through the command line (`moirejax invert`,
 called in-process as `moirejax.cli.main`): a dataset and a folder of frames holding
@@ -145,6 +146,8 @@ def _invert_cases(inverter, frames_by_case):
             entry["false_accept_rate"] = believed / len(frames)
             entry["accepted_abs_fz_n"] = _stats(accepted_fz)
             entry["accepted_max_abs_wrench_over_range"] = _stats(accepted_over_range)
+            # Invalid frames made from loaded ones: how far a believed wrench is from that load.
+            entry["accepted_max_error_over_range"] = _stats(loaded_error)
         elif kind == "loaded":
             entry["false_rejects"] = len(frames) - believed
             entry["false_reject_rate"] = (len(frames) - believed) / len(frames)
@@ -332,8 +335,9 @@ def main(argv=None):
 
     n = args.n
     none = [None] * n
+    truths = list(schedule.wrench)
     cases = {
-        "valid_loaded": ("loaded", loaded, list(schedule.wrench)),
+        "valid_loaded": ("loaded", loaded, truths),
         "valid_unloaded": ("unloaded", unloaded, none),
         "uniform_noise": ("invalid", [noisy(rng.uniform(0, 1, shape)) for _ in range(n)], none),
         "gaussian_noise": ("invalid", [noisy(rng.normal(0.5, 0.15, shape)) for _ in range(n)], none),
@@ -341,10 +345,10 @@ def main(argv=None):
         "wrong_unit": ("invalid", other, none),
         "black": ("invalid", [noisy(np.abs(rng.normal(0, 0.01, shape))) for _ in range(n)], none),
         "white": ("invalid", [noisy(1 - np.abs(rng.normal(0, 0.01, shape))) for _ in range(n)], none),
-        "overexposed": ("invalid", [noisy(4 * f) for f in loaded], none),
-        "occluded_half": ("invalid", [noisy(_blob(rng, f)) for f in loaded], none),
-        "rolled": ("invalid", [rolled(f) for f in loaded], none),
-        "nan_pixels": ("invalid", [with_nan(f) for f in loaded], none),
+        "overexposed": ("invalid", [noisy(4 * f) for f in loaded], truths),
+        "occluded_half": ("invalid", [noisy(_blob(rng, f)) for f in loaded], truths),
+        "rolled": ("invalid", [rolled(f) for f in loaded], truths),
+        "nan_pixels": ("invalid", [with_nan(f) for f in loaded], truths),
     }
 
     t = time.perf_counter()
