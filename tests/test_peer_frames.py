@@ -52,7 +52,9 @@ def test_contact_is_decided_from_the_fringe_phase(peer, estimates):
     _, _, loaded, inverter = peer
     status = np.array([int(e.status) for e in estimates])
     assert np.all(status[~loaded] == mj.Status.NO_CONTACT), status
-    assert not np.any(status[loaded] == mj.Status.NO_CONTACT), status
+    # Nor is a loaded frame refused as not showing the unit's fringes.
+    solved = (mj.Status.CONVERGED, mj.Status.MAX_STEPS, mj.Status.UNEXPLAINED)
+    assert np.all(np.isin(status[loaded], solved)), status
     # The gate's statistic is near one without load and far above the threshold with it.
     phase_change = eqx.filter_jit(lambda inv, frame: inv.phase_change(frame))
     frames = peer[0]
