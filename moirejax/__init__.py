@@ -139,6 +139,7 @@ from .physics import (
     surface_tractions as surface_tractions,
     SurfaceGrid as SurfaceGrid,
     traction_resultant as traction_resultant,
+    traction_spectrum as traction_spectrum,
 )
 from .simulate import (
     Deviations as Deviations,

@@ -9,6 +9,7 @@ from ._contact import (
     surface_tractions as surface_tractions,
     SurfaceGrid as SurfaceGrid,
     traction_resultant as traction_resultant,
+    traction_spectrum as traction_spectrum,
 )
 from ._device import (
     Device as Device,

@@ -259,7 +259,11 @@ class LayerResponse(eqx.Module):
     def __call__(self, traction: Float[Array, "3 h w"]) -> Float[Array, "3 h w"]:
         if traction.shape != (3, *self.shape):
             raise ValueError(f"traction must have shape {(3, *self.shape)}, got {traction.shape}.")
-        tx, ty, p = jnp.fft.rfft2(traction.astype(_real_dtype(self.xx.dtype)))
+        return self.displacement_of_spectrum(jnp.fft.rfft2(traction.astype(_real_dtype(self.xx.dtype))))
+
+    def displacement_of_spectrum(self, spectrum: Complex[Array, "3 h k"]) -> Float[Array, "3 h w"]:
+        """The displacement `(ux, uy, w)` (mm) under the traction field whose `rfft2` is `spectrum`."""
+        tx, ty, p = spectrum.astype(self.xx.dtype)
         ux = self.xx * tx + self.xy * ty + self.coupling_x * p
         uy = self.xy * tx + self.yy * ty + self.coupling_y * p
         w = self.ww * p - self.coupling_x * tx - self.coupling_y * ty

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import jax.random as jr
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from ._contact import Contact, surface_grid, surface_tractions, SurfaceGrid
+from ._contact import Contact, surface_grid, surface_tractions, SurfaceGrid, traction_spectrum
 from ._device import Device
 from ._elastomer import layer_response, LayerResponse
 from ._optics import (
@@ -60,7 +60,8 @@ class Mechanics(eqx.Module):
     def __call__(self, wrench: Float[Array, "6"], contact: Contact) -> Deformation:
         tractions = surface_tractions(wrench, contact, self.grid)
         light = contact_light(self.device, tractions[2], wrench[2], contact, self.grid)
-        return Deformation(grid=self.grid, tractions=tractions, displacement=self.response(tractions), light=light)
+        displacement = self.response.displacement_of_spectrum(traction_spectrum(wrench, contact, self.grid))
+        return Deformation(grid=self.grid, tractions=tractions, displacement=displacement, light=light)
 
 
 def mechanics(device: Device, shape: tuple[int, int]) -> Mechanics:
