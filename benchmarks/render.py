@@ -59,7 +59,7 @@ def _summary(times: list[float], frames_per_call: int) -> dict[str, float]:
 
 def _wrenches(batch: int) -> jax.Array:
     rng = np.random.default_rng(0)
-    ranges = np.array([0.2, 0.2, 1.2, 0.012, 0.012, 0.008])
+    ranges = np.array([mj.PAPER_RANGES[axis] for axis in mj.WRENCH_AXES])
     w = rng.uniform(-1, 1, (batch, 6)) * ranges
     w[:, 2] = np.abs(w[:, 2])
     return jnp.asarray(w)

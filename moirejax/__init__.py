@@ -3,6 +3,7 @@
 import importlib.metadata
 
 from ._conventions import (
+    PAPER_RANGES as PAPER_RANGES,
     WRENCH_AXES as WRENCH_AXES,
     WRENCH_CONVENTION as WRENCH_CONVENTION,
     WRENCH_UNITS as WRENCH_UNITS,
@@ -62,6 +63,7 @@ from .design import (
     surface_phase_shift as surface_phase_shift,
 )
 from .inverse import (
+    default_carriers as default_carriers,
     default_model_shape as default_model_shape,
     Estimate as Estimate,
     frame_tracker as frame_tracker,
@@ -81,8 +83,10 @@ from .inverse import (
 from .observe import (
     band_model as band_model,
     BandModel as BandModel,
+    BasebandPass as BasebandPass,
     brightness_baseline as brightness_baseline,
     BrightnessBaseline as BrightnessBaseline,
+    carrier_band_radius as carrier_band_radius,
     Demodulator as Demodulator,
     frame_summary as frame_summary,
     FrameSummary as FrameSummary,
@@ -90,6 +94,7 @@ from .observe import (
     FringeFields as FringeFields,
     FringeObservables as FringeObservables,
     match_reference_geometry as match_reference_geometry,
+    measure_moire_wavevectors as measure_moire_wavevectors,
     NumpyDemodulator as NumpyDemodulator,
     predicted_bands as predicted_bands,
     RealBandPass as RealBandPass,
@@ -130,6 +135,7 @@ from .physics import (
     preset as preset,
     relative_mismatch as relative_mismatch,
     render_deformed as render_deformed,
+    render_deformed_high as render_deformed_high,
     render_frame as render_frame,
     render_frame_high as render_frame_high,
     save_device as save_device,
@@ -142,10 +148,16 @@ from .physics import (
     traction_spectrum as traction_spectrum,
 )
 from .simulate import (
+    CONTACT_SHAPES as CONTACT_SHAPES,
     Deviations as Deviations,
+    Indenter as Indenter,
+    indenter_deformation as indenter_deformation,
+    indenter_tractions as indenter_tractions,
+    IndenterFrame as IndenterFrame,
     load_schedule as load_schedule,
     LoadSchedule as LoadSchedule,
     perturb_device as perturb_device,
+    random_indenters as random_indenters,
     simulate_dataset as simulate_dataset,
 )
 

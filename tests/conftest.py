@@ -54,3 +54,12 @@ def float32():
     """
     with jax.enable_x64(False):
         yield
+
+
+@pytest.fixture
+def moire_bands_only(monkeypatch):
+    """Invert on the moiré bands alone (`MOIREJAX_CARRIERS=0`, inherited by the processes a
+    test starts), for end-to-end runs that check files, reports and plots rather than accuracy
+    on frames of another renderer: each model evaluation costs about two thirds. The carriers'
+    own tests, the peer frames and the inversion tests keep the default."""
+    monkeypatch.setenv("MOIREJAX_CARRIERS", "0")

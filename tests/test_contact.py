@@ -120,7 +120,9 @@ def test_traction_spectrum_is_the_transform_of_the_hard_edge_fields(wrench, cont
     spectrum = np.asarray(traction_spectrum(wrench, contact, grid))
     kx = 2 * np.pi * np.fft.rfftfreq(64, float(grid.spacing))
     ky = 2 * np.pi * np.fft.fftfreq(64, float(grid.spacing))
-    box = np.sinc(kx[None, :] * float(grid.spacing) / (2 * np.pi)) * np.sinc(ky[:, None] * float(grid.spacing) / (2 * np.pi))
+    box = np.sinc(kx[None, :] * float(grid.spacing) / (2 * np.pi)) * np.sinc(
+        ky[:, None] * float(grid.spacing) / (2 * np.pi)
+    )
     low = np.hypot(kx[None, :], ky[:, None]) < 2.0  # rad/mm: the scale of the fringe band
     scale = np.abs(expected[:, low]).max()
     # The fine sampling of the square-root edge is itself good to a few 1e-3; the grid's own

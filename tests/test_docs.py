@@ -179,6 +179,7 @@ def test_readme_command_table_has_every_cli_command_once():
     assert all(row[2].strip() for row in rows), "every command says what it does"
 
 
+@pytest.mark.usefixtures("moire_bands_only")
 def test_readme_example_calibrates_and_inverts(tmp_path):
     (example,) = re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), re.DOTALL)
     assert "moirejax._" not in example and "import moirejax as mj" in example

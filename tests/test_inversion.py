@@ -232,9 +232,9 @@ def test_tracking_agrees_with_levenberg_marquardt_and_never_retraces(mid, invert
             difference = np.abs(np.asarray(estimate.wrench) - np.asarray(reference.wrench))
             assert np.all(difference < 1.0 * np.asarray(reference.sigma) + 1e-4 * WRENCH_SCALE), difference
     # After the first frame the frozen-Jacobian iterations carry the stream (a few model
-    # evaluations per frame; Levenberg-Marquardt would take ten or more steps). On the
-    # fringe phase alone they take one more than on the full residual did.
-    assert np.median(steps[1:]) <= 4, steps
+    # evaluations per frame; Levenberg-Marquardt would take ten or more steps). With the
+    # carrier bands beside the moiré bands they take about one more.
+    assert np.median(steps[1:]) <= 5, steps
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 1280, 1281])

@@ -38,6 +38,7 @@ def test_notebook_pair_in_sync_and_without_outputs(source):
 
 
 @pytest.mark.parametrize("source", PAIRED, ids=lambda path: path.stem)
+@pytest.mark.usefixtures("moire_bands_only")
 def test_notebook_runs_in_smoke_mode(source, tmp_path, monkeypatch):
     # The kernel inherits this environment; the notebooks shrink themselves under MOIREJAX_SMOKE.
     monkeypatch.setenv("MOIREJAX_SMOKE", "1")

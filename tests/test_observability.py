@@ -295,7 +295,8 @@ def test_stray_beats_in_a_band_are_found_and_refused():
         inverter = mj.Inverter(rational)
     # Its fringe band sits 18 bins out: the suite's 64 x 64 override (MOIREJAX_MODEL_GRID)
     # would fold it over the grid's Nyquist limit, so the inverter takes the 80 x 80 it needs.
-    assert inverter.model_shape == (80, 80) == (inverter.demodulator.smallest_band_grid(),) * 2
+    moire = tuple(range(rational.n_sets))  # the carriers reach the model through their own path
+    assert inverter.model_shape == (80, 80) == (inverter.demodulator.smallest_band_grid(moire),) * 2
     with pytest.warns(UserWarning, match="mixed-order"), pytest.raises(ValueError, match="too coarse"):
         mj.Inverter(rational, model_shape=(64, 64))
 

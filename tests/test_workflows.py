@@ -38,7 +38,7 @@ def datasets(tmp_path_factory):
     return root
 
 
-@pytest.mark.usefixtures("float32")
+@pytest.mark.usefixtures("float32", "moire_bands_only")
 def test_calibrate_evaluate_transfer(datasets):
     root = datasets
     summary = calibrate(
@@ -219,7 +219,7 @@ def test_example_unit_in_the_package_loads_with_its_head():
     assert abs(corrected[0, 2] - 0.6) < 0.1
 
 
-@pytest.mark.usefixtures("float32")
+@pytest.mark.usefixtures("float32", "moire_bands_only")
 def test_demo_runs_end_to_end_in_smoke_mode(tmp_path, capsys):
     from moirejax.cli._demo import run_demo
 

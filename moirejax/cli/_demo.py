@@ -70,7 +70,7 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     heldout = Dataset(out_dir / "heldout")
     device, _ = load_calibrated(out_dir / "fit.json")
     inverter = Inverter(device, reference=dataset_reference(heldout))
-    frames = [heldout.frame(i) for i in range(min(12, len(heldout)))]
+    frames = [heldout.frame(i) for i in range(min(4 if smoke else 12, len(heldout)))]
     invert_frames(inverter, frames[:1], progress=False)
     t0 = time.perf_counter()
     invert_frames(inverter, frames, progress=False)

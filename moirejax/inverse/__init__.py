@@ -4,6 +4,7 @@ It imports `observe` and the layers below.
 """
 
 from ._inversion import (
+    default_carriers as default_carriers,
     default_model_shape as default_model_shape,
     Estimate as Estimate,
     frame_tracker as frame_tracker,

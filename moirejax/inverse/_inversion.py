@@ -64,6 +64,7 @@ from ..observe import (
     BAND_FRACTION,
     band_model,
     BandModel,
+    carrier_band_radius,
     complex_ratio,
     Demodulator,
     FringeFields,
@@ -77,16 +78,25 @@ from ..physics import Contact, Device
 
 N_UNKNOWNS = 10
 # Prior widths: centre-of-pressure offset from the contact centre (N*mm of moment), and
-# log contact radius around 3.5 mm.
-_TILT_PRIOR_NMM = 0.8
+# log contact radius around 3.5 mm. A pressure not centred on its contact is a tilted
+# indenter; along line gratings it moves the fringes almost as the shear along the lines
+# does (docs/physics.md), and a wider prior trades one for the other.
+_TILT_PRIOR_NMM = 0.25
 _RADIUS_PRIOR = (math.log(3.5), 0.6)
 # Width of the wrench prior, in units of WRENCH_SCALE: a load is a priori about as large as
 # the calibrated range. Data that see an axis override it; data that do not (the shear
 # across a line grating's lines sees the fringes only through second-order effects) leave
 # that axis near zero with an uncertainty of about its range, instead of at a wild value.
 _WRENCH_PRIOR = 1.0
-# Prior residuals: the tilt (2), the radius (1) and the wrench (6).
-N_PRIORS = 9
+# Width of the log-exposure prior. The fringe phase does not see the exposure at all: without
+# a prior a phase-only refinement can drift it by rounding alone until the model overflows.
+_EXPOSURE_PRIOR = 1.0
+# Prior residuals: the tilt (2), the radius (1), the wrench (6) and the exposure (1).
+N_PRIORS = 10
+# Radius of the cuts around the reference grating's carrier (and its sidebands) in a carrier
+# band, over |K|: that carrier lies |K| from the upper grating's, and its glow-modulated
+# spread must stay inside the cut while the upper grating's own spectrum stays outside.
+_CARRIER_NOTCH = 0.6
 # A cold solve whose cost is above this fraction of the zero-load cost tries more starts.
 _UNEXPLAINED = 0.004
 # A contact frame whose fringe phase residual, above the pixel noise, keeps more than this
@@ -215,6 +225,18 @@ def default_model_shape(device: Device) -> tuple[int, int]:
     return (int(override), int(override))
 
 
+def default_carriers() -> bool | None:
+    """Whether an [`Inverter`][] given `carriers=None` demodulates the carriers: `None`
+    (where the camera resolves them) unless the environment variable `MOIREJAX_CARRIERS` is
+    `0`, which leaves them out: each model evaluation then costs about two thirds, at the
+    accuracy of the moiré bands alone (the test suite's end-to-end runs use it; the
+    benchmarks do not)."""
+    override = os.environ.get("MOIREJAX_CARRIERS", "").strip()
+    if override not in ("", "0", "1"):
+        raise ValueError(f"MOIREJAX_CARRIERS must be 0 or 1, got {override!r}")
+    return None if override in ("", "1") else False
+
+
 def initial_state(x0: float = 0.0, y0: float = 0.0, radius: float = 3.5, dtype=float) -> Float[Array, "10"]:
     """The solver's ten unknowns ([`Estimate.state`][moirejax.Estimate]) at zero load and a
     contact guess: the wrench over the paper's ranges (six), the contact centre (mm), the
@@ -243,6 +265,11 @@ class Inverter(eqx.Module):
     - `contact_threshold`: how many times its noise level the fringe phase must move, in a
       window somewhere on the frame, for the frame to count as in contact
       ([`Inverter.phase_change`][]).
+    - `carriers`: demodulate the upper grating's own carriers beside the moiré bands
+      (see [`band_model`][]): the same displacement signal, at about four times the moiré
+      band's resolution, which the shear along line gratings and small contacts need.
+      `None` uses them where the camera resolves that grating ([`carrier_band_radius`][]),
+      unless the environment says otherwise ([`default_carriers`][]).
     - `brightness`: fit the brightness band too, through the device's law of the light a
       contact scatters (glow and rim). Off by default: a unit need not follow that law (an
       elastomer that does not glow, other lighting), and a law the unit does not follow
@@ -288,6 +315,7 @@ class Inverter(eqx.Module):
         match_reference: bool = True,
         chord_steps: int = 4,
         chord_tolerance: float = 0.25,
+        carriers: bool | None = None,
     ):
         if reference is not None:
             reference = np.asarray(reference, dtype=np.asarray(device.p1).dtype)
@@ -313,17 +341,47 @@ class Inverter(eqx.Module):
         self.brightness = bool(brightness)
         self.chord_steps = chord_steps
         self.chord_tolerance = chord_tolerance
+        sets = device.n_sets
+        moire = np.asarray(device.moire_wavevectors())
+        if carriers is None:
+            carriers = default_carriers()
+        radius = carrier_band_radius(device, crop_shape) if carriers in (None, True) else None
+        if carriers and radius is None:
+            raise ValueError("this camera does not resolve the upper grating's carriers; use carriers=False")
+        if radius is None:
+            wavevectors, band_radius, peak_radius, notches, notch_radius = moire, None, None, None, None
+        else:
+            # The carrier band also holds the reference grating's carrier, |K| away, and on a
+            # crossed grid its sidebands from the other line set's fringes: they do not move
+            # under load but follow the illumination and a contact's glow, so they are cut
+            # out; and the peak is sought closer than them.
+            moire = moire.astype(np.float64)
+            wavevectors = np.concatenate([moire, np.asarray(device.apparent_upper_wavevectors(), np.float64)])
+            k2 = np.asarray(device.reference_wavevectors(), np.float64)
+            moire_norm = np.linalg.norm(moire, axis=-1)
+            band_radius = np.asarray([np.nan] * sets + [radius] * sets)
+            peak_radius = np.concatenate([np.full(sets, np.nan), band_fraction * moire_norm])
+            sidebands = [
+                [k2[s], *(k2[s] + side * moire[b] for b in range(sets) if b != s for side in (-1, 1))]
+                for s in range(sets)
+            ]
+            notches = [[] for _ in range(sets)] + sidebands
+            notch_radius = np.concatenate([np.zeros(sets), _CARRIER_NOTCH * moire_norm])
         self.demodulator = Demodulator(
             (device.height, device.width),
             float(device.px_per_mm),
-            np.asarray(device.moire_wavevectors()),
+            wavevectors,
             crop_shape=crop_shape,
             band_fraction=band_fraction,
+            band_radius=band_radius,
+            peak_radius=peak_radius,
+            notches=notches,
+            notch_radius=notch_radius,
         )
         if model_shape is None:
             # A size from the environment (`MOIREJAX_MODEL_GRID`) never goes below what the
             # bands need: a coarser grid would fold the fringe band over its Nyquist limit.
-            needed = self.demodulator.smallest_band_grid()
+            needed = self.demodulator.smallest_band_grid(tuple(range(sets)))
             rows, cols = default_model_shape(device)
             model_shape = (max(rows, needed), max(cols, needed))
         self.model_shape = (int(model_shape[0]), int(model_shape[1]))
@@ -345,7 +403,10 @@ class Inverter(eqx.Module):
                 # mis-phased against the moire term by the reference correction.
                 weight = self.demodulator.fringe_envelope.astype(self.reference.fringe.dtype)
                 product = self.reference.fringe * jnp.conj(self.model_reference.fringe) * weight
-                offset = jnp.angle(jnp.sum(product, axis=(1, 2)))
+                # The moiré families register the upper grating against the reference one; a
+                # carrier's phase is the upper grating's alone, which the reference correction
+                # takes care of.
+                offset = jnp.angle(jnp.sum(product, axis=(1, 2)))[:sets]
                 self.device = eqx.tree_at(lambda d: d.optics.phase1, self.device, self.device.optics.phase1 + offset)
                 self.model_reference = self._predict_now(zero, self.reference.reference_wavevector)
         # Every model evaluation of a solve refers to this unit and this reference: what does
@@ -448,8 +509,9 @@ class Inverter(eqx.Module):
             / _TILT_PRIOR_NMM
         )
         radius = (y[8] - _RADIUS_PRIOR[0]) / _RADIUS_PRIOR[1]
+        exposure = y[9] / _EXPOSURE_PRIOR
         # Priors are in units of the data noise so their weight does not depend on it.
-        return jnp.concatenate([tilt, radius[None], y[:6] / _WRENCH_PRIOR]) * noise
+        return jnp.concatenate([tilt, radius[None], y[:6] / _WRENCH_PRIOR, exposure[None]]) * noise
 
     def residuals(self, y, args):
         """Whitened data residuals followed by the prior residuals (optimistix signature)."""
@@ -558,9 +620,14 @@ class Inverter(eqx.Module):
 
         Less reliable than the brightness centroid of [`Inverter.initial_guess`][] on the
         whole (a stray peak can sit anywhere), but right where that one is misled: a light
-        press with strong shear or twist, whose glow is faint and off-centre.
+        press with strong shear or twist, whose glow is faint and off-centre. Read on the
+        moiré families: a carrier's change wraps where its phase winds fast (at a twisted
+        contact's rim), and its energy peaks there, not at the centre.
         """
-        change = jnp.sum(jnp.abs(observed.fringe - self.reference.fringe) ** 2 * self.fringe_weight**2, axis=0)
+        sets = self.device.n_sets
+        change = jnp.sum(
+            jnp.abs(observed.fringe[:sets] - self.reference.fringe[:sets]) ** 2 * self.fringe_weight[:sets] ** 2, axis=0
+        )
         return jnp.stack(self._peak_centroid(change))
 
     def _peak_centroid(self, weight: Float[Array, "m n"]) -> tuple[Float[Array, ""], Float[Array, ""]]:

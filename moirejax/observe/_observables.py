@@ -67,6 +67,7 @@ read the demodulator's plan.
 
 import cmath
 import math
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import cv2
@@ -292,7 +293,7 @@ def _demodulate(xp, plan, spectrum, reference_k=None):
     windows = xp.stack([_crop(xp, spectrum, p - 1, q - 1, m + 2, n + 2) for p, q in plan.crop_starts])
     if reference_k is None:
         peaks = _peak_wavevectors(xp, windows, plan.peak_support, plan.crop_starts, plan.frame_shape, pixel)
-        reference_k = _reference_wavevectors(xp, peaks, nominal, 0.5 * _cast(xp, plan.band_radius, real_dtype))
+        reference_k = _reference_wavevectors(xp, peaks, nominal, 0.5 * _cast(xp, plan.peak_radius, real_dtype))
     else:
         reference_k = _cast(xp, reference_k, real_dtype)
         peaks = reference_k
@@ -370,6 +371,9 @@ class Demodulator(eqx.Module):
     - `wavevectors`: nominal $\mathbf{K}_f$ (rad/mm); `bin_wavevectors`: the bin each
       window is centred on.
     - `band_radius`: $R_f$ per family; `brightness_band_radius`: radius of the DC band.
+    - `peak_radius`: per family, the disc around $\mathbf K_f$ searched for the frame's peak.
+    - `notches`, `notch_radius`: per family, wavevectors cut out of its band (static), and the
+      radius of the cuts.
     - `rolloff`: taper fraction of the raised-cosine windows.
     - `coarse_x`, `coarse_y`: coarse-grid coordinates (mm); `coarse_y` decreases with row.
     - `fringe_envelope`: magnitude of the band-passed unit nominal fringe, about 1 in the
@@ -380,7 +384,7 @@ class Demodulator(eqx.Module):
     - `brightness_envelope`: the band-passed apodization, about 1 in the middle and small at
       the border; the brightness is divided by it.
     - `brightness_normalisation`: `(-1)^(r+s) / brightness_envelope`.
-    - `peak_support`: bins where each family's band window is non-zero.
+    - `peak_support`: bins where each family's band window is non-zero, within `peak_radius`.
     - `centroid_weights`: separable Tukey weights `(rows, columns)` of the brightness
       centroid on the frame grid.
     """
@@ -393,6 +397,9 @@ class Demodulator(eqx.Module):
     wavevectors: Float[Array, "families 2"]
     bin_wavevectors: Float[Array, "families 2"]
     band_radius: Float[Array, " families"]
+    peak_radius: Float[Array, " families"]
+    notches: tuple[tuple[tuple[float, float], ...], ...] = eqx.field(static=True)
+    notch_radius: Float[Array, " families"]
     brightness_band_radius: Float[Array, ""]
     rolloff: Float[Array, ""]
     coarse_x: Float[Array, " n"]
@@ -415,6 +422,10 @@ class Demodulator(eqx.Module):
         rolloff: float = BAND_ROLLOFF,
         apodize: bool = True,
         centroid_taper: float = 0.25,
+        band_radius: ArrayLike | Sequence[float] | None = None,
+        peak_radius: ArrayLike | Sequence[float] | None = None,
+        notches: Sequence[Any] | None = None,
+        notch_radius: ArrayLike | Sequence[float] | None = None,
     ):
         r"""**Arguments:**
 
@@ -430,6 +441,18 @@ class Demodulator(eqx.Module):
         - `apodize`: apodize the fringe and brightness bands (see the module notes).
         - `centroid_taper`: fraction of the width and height, on each side, over which the
           brightness centroid's weight tapers to zero (see [`moirejax.frame_summary`][]).
+        - `band_radius`: band radius (rad/mm) per family, overriding `band_fraction`
+          $|\mathbf K_f|$ where it is not NaN: the bands of the upper grating's own carriers
+          are wider than the moiré bands (see [`moirejax.carrier_band_radius`][]). The
+          brightness band keeps `band_fraction` of the smallest $|\mathbf K_f|$.
+        - `peak_radius`: per family (NaN for the band radius), how far from $\mathbf K_f$ the
+          frame's spectral peak is sought, and half of it how far the reference wavevector may
+          move: a carrier's band also holds the reference grating's static carrier, which
+          must not be taken for its peak.
+        - `notches`: per family, wavevectors (rad/mm) cut out of its band by raised-cosine
+          discs of `notch_radius` (per family): the reference grating's carrier and its
+          sidebands inside a carrier band, which do not move under load but follow the
+          illumination and an elastomer's glow.
         """
         h, w = (int(s) for s in frame_shape)
         m, n = (int(s) for s in crop_shape)
@@ -453,6 +476,23 @@ class Demodulator(eqx.Module):
         k_norm = np.hypot(k_nominal[:, 0], k_nominal[:, 1])
         radius = band_fraction * k_norm
         dc_radius = band_fraction * k_norm.min()
+        if band_radius is not None:
+            given = np.broadcast_to(np.asarray(band_radius, dtype=np.float64), radius.shape)
+            radius = np.where(np.isnan(given), radius, given)
+            if not np.all(radius > 0):
+                raise ValueError(f"band_radius must be positive, got {band_radius}.")
+        notch_radius = (
+            np.zeros_like(radius)
+            if notch_radius is None
+            else np.broadcast_to(np.asarray(notch_radius, float), radius.shape)
+        )
+        notches = [[] for _ in radius] if notches is None else [np.asarray(c, float).reshape(-1, 2) for c in notches]
+        if len(notches) != len(radius):
+            raise ValueError(f"notches needs one list of wavevectors per family, got {len(notches)} for {len(radius)}.")
+        peak = radius.copy()
+        if peak_radius is not None:
+            given = np.broadcast_to(np.asarray(peak_radius, dtype=np.float64), radius.shape)
+            peak = np.where(np.isnan(given), radius, np.minimum(given, radius))
         _check_bands(k_nominal, radius, dc_radius)
 
         dk_col = 2 * math.pi / (w * pixel)  # kx per column bin (rad/mm)
@@ -466,7 +506,7 @@ class Demodulator(eqx.Module):
         dky = np.broadcast_to(-(np.arange(m)[:, None] - m // 2) * dk_row, (m, n))
 
         crop_starts, bin_k, transfer, support = [], [], [], []
-        for k_f, radius_f in zip(k_nominal, radius):
+        for k_f, radius_f, peak_f, notches_f, notch_f in zip(k_nominal, radius, peak, notches, notch_radius):
             p0 = int(round(-k_f[1] / dk_row))
             q0 = int(round(k_f[0] / dk_col))
             row_start, col_start = p0 - m // 2, q0 - n // 2
@@ -474,6 +514,10 @@ class Demodulator(eqx.Module):
                 raise ValueError(f"Wavevector {k_f} is too close to the Nyquist frequency.")
             k0 = np.array([q0 * dk_col, -p0 * dk_row])
             window = _raised_cosine(np, np.hypot(k0[0] + dkx - k_f[0], k0[1] + dky - k_f[1]), radius_f, rolloff)
+            for centre in notches_f:
+                window = window * (
+                    1 - _raised_cosine(np, np.hypot(k0[0] + dkx - centre[0], k0[1] + dky - centre[1]), notch_f, rolloff)
+                )
             # The support must stay clear of the window's border: no aliasing on the coarse
             # grid, and an exactly zero Nyquist row and column for spectral derivatives.
             if window[[0, -1]].any() or window[:, [0, -1]].any():
@@ -487,7 +531,7 @@ class Demodulator(eqx.Module):
             crop_starts.append((row_start, col_start))
             bin_k.append(k0)
             transfer.append(window * np.exp(1j * phase) * normalisation)
-            support.append(window > 0)
+            support.append((window > 0) & (np.hypot(k0[0] + dkx - k_f[0], k0[1] + dky - k_f[1]) < peak_f))
         transfer = np.stack(transfer)
         tones = _tone_windows(np, k_nominal, crop_starts, (h, w), (m, n), np.float64(pixel), np.complex128)
         envelope = np.abs(_band_pass(np, tones, transfer, apodize, h, w))
@@ -516,6 +560,9 @@ class Demodulator(eqx.Module):
         self.wavevectors = jnp.asarray(k_nominal, dtype=float)
         self.bin_wavevectors = jnp.asarray(np.stack(bin_k), dtype=float)
         self.band_radius = jnp.asarray(radius, dtype=float)
+        self.peak_radius = jnp.asarray(peak, dtype=float)
+        self.notches = tuple(tuple(tuple(float(v) for v in c) for c in n) for n in notches)
+        self.notch_radius = jnp.asarray(notch_radius, dtype=float)
         self.brightness_band_radius = jnp.asarray(dc_radius, dtype=float)
         self.rolloff = jnp.asarray(rolloff, dtype=float)
         self.coarse_x = jnp.asarray(coarse_x, dtype=float)
@@ -561,7 +608,19 @@ class Demodulator(eqx.Module):
             kx[None] - self.wavevectors[(slice(None), 0, *extra)],
             ky[None] - self.wavevectors[(slice(None), 1, *extra)],
         )
-        return _raised_cosine(jnp, distance, self.band_radius[(slice(None), *extra)], self.rolloff)
+        window = _raised_cosine(jnp, distance, self.band_radius[(slice(None), *extra)], self.rolloff)
+        cuts = []
+        for family, centres in enumerate(self.notches):
+            cut = jnp.ones_like(kx)
+            for centre in centres:
+                cut = cut * (
+                    1
+                    - _raised_cosine(
+                        jnp, jnp.hypot(kx - centre[0], ky - centre[1]), self.notch_radius[family], self.rolloff
+                    )
+                )
+            cuts.append(cut)
+        return window * jnp.stack(cuts)
 
     def brightness_transfer_function(
         self, kx: Float[ArrayLike, "*k"], ky: Float[ArrayLike, "*k"]
@@ -698,15 +757,16 @@ class Demodulator(eqx.Module):
         ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
         return raw / self._reference_response(reference_k, field.dtype) * ramp
 
-    def smallest_band_grid(self) -> int:
+    def smallest_band_grid(self, families: tuple[int, ...] | None = None) -> int:
         r"""The smallest square grid (a multiple of 16) whose spectrum holds every band window
         away from its Nyquist bins: the coarsest grid [`real_band_pass`][moirejax.Demodulator.real_band_pass]
         accepts (a band of wavevector $\mathbf K$ needs about $|\mathbf K|/\Delta k$ + `crop_shape`/2
         bins each side)."""
         m, n = self.crop_shape
+        families = tuple(range(self.num_families)) if families is None else families
         half = max(
             max(row_start + m, 1 - row_start, col_start + n, 1 - col_start)
-            for row_start, col_start in (*self.crop_starts, (-(m // 2), -(n // 2)))
+            for row_start, col_start in (*(self.crop_starts[f] for f in families), (-(m // 2), -(n // 2)))
         )
         return 16 * math.ceil(2 * half / 16)
 
@@ -715,6 +775,7 @@ class Demodulator(eqx.Module):
         shape: tuple[int, int],
         reference_wavevector: Float[Array, "families 2"] | None = None,
         dtype=None,
+        families: tuple[int, ...] | None = None,
     ) -> "RealBandPass":
         r"""[`filter_baseband`][moirejax.Demodulator.filter_baseband] and
         [`filter_brightness`][moirejax.Demodulator.filter_brightness] at once, for a real field
@@ -734,17 +795,21 @@ class Demodulator(eqx.Module):
         - `reference_wavevector`: the measurement's `reference_wavevector`; the nominal
           wavevectors if omitted.
         - `dtype`: real precision of the fields (default: JAX's default float).
+        - `families`: the fringe families to pass (default all); the upper grating's carriers
+          lie far above any model grid's Nyquist limit and reach a model through
+          [`baseband_pass`][moirejax.Demodulator.baseband_pass] instead.
 
         **Returns:** a [`RealBandPass`][moirejax.observe._observables.RealBandPass]; call it with the
         field for `(fringe, brightness)` on the coarse grid.
         """
+        families = tuple(range(self.num_families)) if families is None else tuple(families)
         rows, cols = (int(n) for n in shape)
         m, n = self.crop_shape
         h, w = self.frame_shape
         if rows < m or cols < n:
             raise ValueError(f"grid {shape} has fewer samples than crop_shape {self.crop_shape}.")
         # The DC band last; every window must stay clear of this grid's Nyquist bins.
-        starts = (*self.crop_starts, (-(m // 2), -(n // 2)))
+        starts = (*(self.crop_starts[f] for f in families), (-(m // 2), -(n // 2)))
         for row_start, col_start in starts:
             inside_rows = -(rows // 2) < row_start and row_start + m <= rows // 2
             inside_cols = -(cols // 2) < col_start and col_start + n <= cols // 2
@@ -752,18 +817,19 @@ class Demodulator(eqx.Module):
                 raise ValueError(f"grid {shape} is too coarse for the bands of this demodulator; refine it.")
         real_dtype = jnp.dtype(jnp.result_type(float) if dtype is None else dtype)
         complex_dtype = np.complex64 if real_dtype == np.float32 else np.complex128
+        select = np.asarray(families, dtype=int)
         nominal = self.wavevectors.astype(real_dtype)
         reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(real_dtype)
         frame_x0, frame_y0 = self._grid_origin(h, w, real_dtype)
         grid_x0, grid_y0 = self._grid_origin(rows, cols, real_dtype)
         dkx, dky = self._window_offsets(real_dtype)
-        k_bin = jnp.concatenate([self.bin_wavevectors.astype(real_dtype), jnp.zeros((1, 2), real_dtype)])
+        k_bin = jnp.concatenate([self.bin_wavevectors.astype(real_dtype)[select], jnp.zeros((1, 2), real_dtype)])
         # As `_grid_band_pass`: DFT phases referred from this grid's sample (0, 0) to the
         # frame's pixel (0, 0) and sample counts to the frame's; and the shift to bin k_bin,
         # exp(-i k_bin.x) in space, is exp(-i k_bin.x_00) times a window offset.
         phase = (k_bin[:, 0] * (frame_x0 - grid_x0) + k_bin[:, 1] * (frame_y0 - grid_y0))[:, None, None]
         phase = phase + (dkx * (frame_x0 - grid_x0))[None, None, :] + (dky * (frame_y0 - grid_y0))[None, :, None]
-        transfer = jnp.concatenate([self.fringe_transfer, self.brightness_transfer[None]]).astype(complex_dtype)
+        transfer = jnp.concatenate([self.fringe_transfer[select], self.brightness_transfer[None]]).astype(complex_dtype)
         spectral = transfer * _expi(jnp, phase) * (h * w / (rows * cols))
         ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
         return RealBandPass(
@@ -772,8 +838,65 @@ class Demodulator(eqx.Module):
             window_starts=tuple(starts),
             apodization=self.apodization(rows, cols).astype(real_dtype),
             spectral=spectral,
-            spatial=ramp / self._reference_response(reference_k, complex_dtype),
+            spatial=(ramp / self._reference_response(reference_k, complex_dtype))[select],
             brightness_normalisation=self.brightness_normalisation.astype(real_dtype),
+        )
+
+    def baseband_pass(
+        self,
+        shape: tuple[int, int],
+        families: tuple[int, ...],
+        reference_wavevector: Float[Array, "families 2"] | None = None,
+        dtype=None,
+        blur: Callable[[Array], Array] | None = None,
+    ) -> "BasebandPass":
+        """[`filter_baseband`][moirejax.Demodulator.filter_baseband] for the `families` given, on
+        one `shape` cell-centred grid over the frame, with everything but the field precomputed.
+
+        A forward model that predicts the complex baseband of a band whose centre lies above
+        its grid's Nyquist limit (the upper grating's carrier) builds this once and calls it
+        with a `(len(families), rows, cols)` field for the filtered field on the coarse grid.
+        `blur`, a function of the absolute wavenumber (rad/mm), is a transfer the frame went
+        through before demodulation (a lens PSF), applied at each bin's own wavenumber.
+        """
+        rows, cols = (int(n) for n in shape)
+        families = tuple(int(f) for f in families)
+        select = np.asarray(families, dtype=int)
+        m, n = self.crop_shape
+        h, w = self.frame_shape
+        if rows < m or cols < n:
+            raise ValueError(f"grid {shape} has fewer samples than crop_shape {self.crop_shape}.")
+        real_dtype = jnp.dtype(jnp.result_type(float) if dtype is None else dtype)
+        complex_dtype = np.complex64 if real_dtype == np.float32 else np.complex128
+        nominal = self.wavevectors.astype(real_dtype)
+        reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(real_dtype)
+        grid_x0, grid_y0 = self._grid_origin(rows, cols, real_dtype)
+        frame_x0, frame_y0 = self._grid_origin(h, w, real_dtype)
+        pixel = 1 / self.px_per_mm.astype(real_dtype)
+        grid_x = grid_x0 + jnp.arange(cols, dtype=real_dtype) * (w / cols) * pixel
+        grid_y = grid_y0 - jnp.arange(rows, dtype=real_dtype) * (h / rows) * pixel
+        k_bin = self.bin_wavevectors.astype(real_dtype)[select]
+        dkx, dky = self._window_offsets(real_dtype)
+        regrid = _expi(
+            jnp,
+            (k_bin[:, 0] * frame_x0 + k_bin[:, 1] * frame_y0)[:, None, None]
+            + (dkx * (frame_x0 - grid_x0))[None, None, :]
+            + (dky * (frame_y0 - grid_y0))[None, :, None],
+        ) * (h * w / (rows * cols))
+        ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
+        spectral = self.fringe_transfer[select].astype(complex_dtype) * regrid
+        if blur is not None:
+            wavenumber = jnp.hypot(
+                k_bin[:, 0, None, None] + dkx[None, None, :], k_bin[:, 1, None, None] + dky[None, :, None]
+            )
+            spectral = spectral * blur(wavenumber).astype(complex_dtype)
+        return BasebandPass(
+            shape=(rows, cols),
+            crop_shape=(m, n),
+            carrier=_ramp(jnp, (nominal - self.bin_wavevectors.astype(real_dtype))[select], grid_x, grid_y),
+            apodization=self.apodization(rows, cols).astype(real_dtype),
+            spectral=spectral,
+            spatial=(ramp / self._reference_response(reference_k, complex_dtype))[select],
         )
 
     def filter_brightness(self, field: Float[Array, "rows cols"]) -> Float[Array, "m n"]:
@@ -817,6 +940,28 @@ class RealBandPass(eqx.Module):
         windows = jnp.stack([_crop(jnp, spectrum, p, q, m, n) for p, q in self.window_starts])
         bands = jnp.fft.ifft2(self.spectral * windows)
         return bands[:-1] * self.spatial, jnp.real(bands[-1]) * self.brightness_normalisation
+
+
+class BasebandPass(eqx.Module):
+    """A [`Demodulator`][moirejax.Demodulator]'s fringe band-pass for complex baseband fields of
+    some of its families on one grid (see
+    [`Demodulator.baseband_pass`][moirejax.Demodulator.baseband_pass]): call it with a
+    `(families, rows, cols)` field for the filtered fields on the coarse grid."""
+
+    shape: tuple[int, int] = eqx.field(static=True)
+    crop_shape: tuple[int, int] = eqx.field(static=True)
+    carrier: Complex[Array, "families rows cols"]
+    apodization: Float[Array, "rows cols"]
+    spectral: Complex[Array, "families m n"]
+    spatial: Complex[Array, "families m n"]
+
+    def __call__(self, field: Complex[Array, "families rows cols"]) -> Complex[Array, "families m n"]:
+        _check_shape("field", field.shape[1:], self.shape)
+        m, n = self.crop_shape
+        taper = self.carrier * self.apodization.astype(self.carrier.dtype)[None]
+        spectrum = jnp.fft.fft2(field * taper.astype(field.dtype))
+        windows = _wrapped(jnp, _wrapped(jnp, spectrum, -(m // 2), m, 1), -(n // 2), n, 2)
+        return jnp.fft.ifft2(self.spectral.astype(field.dtype) * windows) * self.spatial.astype(field.dtype)
 
 
 class FringeObservables(eqx.Module):
@@ -1134,6 +1279,7 @@ class NumpyDemodulator:
         self.px_per_mm = np.asarray(demodulator.px_per_mm, dtype=self.dtype)
         self.wavevectors = np.asarray(demodulator.wavevectors, dtype=self.dtype)
         self.band_radius = np.asarray(demodulator.band_radius, dtype=self.dtype)
+        self.peak_radius = np.asarray(demodulator.peak_radius, dtype=self.dtype)
         self.coarse_x = np.asarray(demodulator.coarse_x, dtype=self.dtype)
         self.coarse_y = np.asarray(demodulator.coarse_y, dtype=self.dtype)
         self.fringe_transfer = np.asarray(demodulator.fringe_transfer).astype(complex_dtype)

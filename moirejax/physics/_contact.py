@@ -220,7 +220,8 @@ def traction_spectrum(wrench: Float[Array, "6"], contact: Contact, grid: Surface
     shift = kx * (grid.X[0, 0] - x0) + ky * (grid.Y[0, 0] - y0)
     area = grid.spacing**2
     phasor = jax.lax.complex(jnp.cos(shift) / area, jnp.sin(shift) / area)
-    keep = ~((jnp.arange(cols // 2 + 1) == cols // 2) & (cols % 2 == 0))[None, :] & ~(
-        (jnp.arange(rows) == rows // 2) & (rows % 2 == 0)
-    )[:, None]
+    keep = (
+        ~((jnp.arange(cols // 2 + 1) == cols // 2) & (cols % 2 == 0))[None, :]
+        & ~((jnp.arange(rows) == rows // 2) & (rows % 2 == 0))[:, None]
+    )
     return jnp.where(keep[None], jax.lax.complex(real, imaginary) * phasor[None], 0)

@@ -286,9 +286,29 @@ def render_frame_high(
     `fabrication_key` fixes the unit's grating phase error (the same for every frame of
     one unit); `key` draws the per-frame noise.
     """
+    state = deformation(device, wrench, contact, mechanics_shape)
+    return render_deformed_high(
+        key, device, state.displacement, state.light, fidelity, exposure=exposure, fabrication_key=fabrication_key
+    )
+
+
+def render_deformed_high(
+    key: PRNGKeyArray,
+    device: Device,
+    displacement: Float[Array, "3 mh mw"],
+    light: Float[Array, "mh mw"],
+    fidelity: HighFidelity = HighFidelity(),
+    *,
+    exposure: ArrayLike = 1.0,
+    fabrication_key: PRNGKeyArray | None = None,
+) -> Float[Array, "h w"]:
+    """The `high`-fidelity frame of a surface deformation given on a mechanics grid covering
+    the image (cell-centred, as [`surface_grid`][] lays it out): `displacement` `(ux, uy, w)`
+    (mm) and the elastomer's `light`. [`render_frame_high`][] renders a wrench's; any
+    traction field's deformation renders through here.
+    """
     s = fidelity.supersample
     H, W = device.height * s, device.width * s
-    state = deformation(device, wrench, contact, mechanics_shape)
     # Sample points of the supersampled pixels, then distort them as the residual
     # lens distortion would.
     x, y = image_coordinates(device, (H, W))
@@ -296,14 +316,14 @@ def render_frame_high(
     factor = 1 + fidelity.distortion * (x**2 + y**2) / corner2
     x, y = x * factor, y * factor
     # Mechanics fields at the distorted points (map_coordinates in grid index space).
-    mh, mw = mechanics_shape
+    mh, mw = displacement.shape[1:]
     step_x = device.width / mw / device.px_per_mm
     step_y = device.height / mh / device.px_per_mm
     cols = x / step_x + (mw - 1) / 2
     rows = (mh - 1) / 2 - y / step_y
     sample = jax.vmap(lambda f: jax.scipy.ndimage.map_coordinates(f, [rows, cols], order=1, mode="nearest"))
-    displacement = sample(state.displacement)
-    light = sample(state.light[None])[0]
+    displacement = sample(displacement)
+    light = sample(light[None])[0]
     phase1, phase2 = grating_phases(device, x, y, displacement)
     fab_key = jr.PRNGKey(0) if fabrication_key is None else fabrication_key
     error = _smooth_random_field(fab_key, (H, W), 1 / (device.px_per_mm * s), fidelity.phase_error_scale)

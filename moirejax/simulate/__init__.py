@@ -1,8 +1,16 @@
-"""Simulated units, load schedules and simulated datasets.
+"""Simulated units, load schedules, indenters of other shapes than a sphere, and simulated datasets.
 
 It imports `physics`, `data` and the foundation modules, never `observe`.
 """
 
+from ._contacts import (
+    CONTACT_SHAPES as CONTACT_SHAPES,
+    Indenter as Indenter,
+    indenter_deformation as indenter_deformation,
+    indenter_tractions as indenter_tractions,
+    IndenterFrame as IndenterFrame,
+    random_indenters as random_indenters,
+)
 from ._simulate import (
     Deviations as Deviations,
     load_schedule as load_schedule,
