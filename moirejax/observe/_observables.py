@@ -701,17 +701,23 @@ class Demodulator(eqx.Module):
         real_dtype = _real_dtype(jnp, dtype)
         spectrum = jnp.fft.fft2(field * self.apodization(rows, cols).astype(dtype)[None])
         windows = _wrapped(jnp, _wrapped(jnp, spectrum, -(m // 2), m, 1), -(n // 2), n, 2)
+        regrid = self._regrid(bin_wavevectors, rows, cols, real_dtype)
+        return jnp.fft.ifft2(transfer.astype(dtype) * regrid * windows)
+
+    def _regrid(self, bin_wavevectors, rows, cols, real_dtype):
+        """The DFT phases and normalisation that refer a band made for frame pixel (0, 0) and
+        h*w samples to sample (0, 0) and the sample count of a `rows x cols` grid."""
+        h, w = self.frame_shape
         frame_x0, frame_y0 = self._grid_origin(h, w, real_dtype)
         grid_x0, grid_y0 = self._grid_origin(rows, cols, real_dtype)
         dkx, dky = self._window_offsets(real_dtype)
         k_bin = bin_wavevectors.astype(real_dtype)
-        regrid = _expi(
+        return _expi(
             jnp,
             (k_bin[:, 0] * frame_x0 + k_bin[:, 1] * frame_y0)[:, None, None]
             + (dkx * (frame_x0 - grid_x0))[None, None, :]
             + (dky * (frame_y0 - grid_y0))[None, :, None],
         ) * (h * w / (rows * cols))
-        return jnp.fft.ifft2(transfer.astype(dtype) * regrid * windows)
 
     def filter_baseband(
         self,
@@ -871,21 +877,15 @@ class Demodulator(eqx.Module):
         nominal = self.wavevectors.astype(real_dtype)
         reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(real_dtype)
         grid_x0, grid_y0 = self._grid_origin(rows, cols, real_dtype)
-        frame_x0, frame_y0 = self._grid_origin(h, w, real_dtype)
         pixel = 1 / self.px_per_mm.astype(real_dtype)
         grid_x = grid_x0 + jnp.arange(cols, dtype=real_dtype) * (w / cols) * pixel
         grid_y = grid_y0 - jnp.arange(rows, dtype=real_dtype) * (h / rows) * pixel
-        k_bin = self.bin_wavevectors.astype(real_dtype)[select]
-        dkx, dky = self._window_offsets(real_dtype)
-        regrid = _expi(
-            jnp,
-            (k_bin[:, 0] * frame_x0 + k_bin[:, 1] * frame_y0)[:, None, None]
-            + (dkx * (frame_x0 - grid_x0))[None, None, :]
-            + (dky * (frame_y0 - grid_y0))[None, :, None],
-        ) * (h * w / (rows * cols))
+        regrid = self._regrid(self.bin_wavevectors[select], rows, cols, real_dtype)
         ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
         spectral = self.fringe_transfer[select].astype(complex_dtype) * regrid
         if blur is not None:
+            k_bin = self.bin_wavevectors.astype(real_dtype)[select]
+            dkx, dky = self._window_offsets(real_dtype)
             wavenumber = jnp.hypot(
                 k_bin[:, 0, None, None] + dkx[None, None, :], k_bin[:, 1, None, None] + dky[None, :, None]
             )
