@@ -110,7 +110,7 @@ def indenter_tractions(indenters: Sequence[Indenter], grid: SurfaceGrid, supersa
     """
     h, w = grid.X.shape
     spacing = grid.spacing
-    offsets = (jnp.arange(supersample) + 0.5) / supersample - 0.5
+    offsets = (jnp.arange(supersample, dtype=grid.X.dtype) + 0.5) / supersample - 0.5
     fine_x = jnp.broadcast_to(
         (grid.X[:, None, :, None] + offsets[None, None, None, :] * spacing), (h, supersample, w, supersample)
     )
