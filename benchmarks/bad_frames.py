@@ -3,7 +3,7 @@
     python benchmarks/bad_frames.py [--n 8] [--seed 0] [--json] [--no-files]
 
 A unit of the Mid design (`mj.preset("mid")`, `high`-fidelity frames with a fixed
-fabrication error) is inverted cold, frame by frame ([`mj.invert_frame`]) with the
+fabrication error) is inverted cold, frame by frame ([`mj.invert`]) with the
 nominal design and the mean of four of its own unloaded frames as the reference. Each case
 draws `--n` random instances:
 
@@ -18,7 +18,7 @@ draws `--n` random instances:
   must be called `no_contact`.
 
 Per case: the count of each status, the false-accept rate (invalid frames with a believed
-wrench) or false-reject rate, crashes (exceptions escaping `invert_frame`), and, for the
+wrench) or false-reject rate, crashes (exceptions escaping `invert`), and, for the
 invalid frames that were believed, the median and maximum of |Fz| and of the largest
 |wrench axis| / that axis' calibrated range (`mj.axis_ranges`), and, for those made from a
 loaded frame (overexposed, occluded, rolled, NaN pixels), the largest error against that
@@ -124,7 +124,7 @@ def _invert_cases(inverter, frames_by_case):
         for frame, truth in zip(frames, truths):
             t = time.perf_counter()
             try:
-                estimate = jax.device_get(mj.invert_frame(inverter, jnp.asarray(frame, jnp.float32)))
+                estimate = jax.device_get(mj.invert(inverter, jnp.asarray(frame, jnp.float32)))
             except Exception as e:  # a crash is what the benchmark counts
                 crashes += 1
                 errors.append(f"{type(e).__name__}: {e}"[:200])
@@ -353,7 +353,7 @@ def main(argv=None):
 
     t = time.perf_counter()
     inverter = mj.Inverter(device, reference)
-    jax.block_until_ready(mj.invert_frame(inverter, jnp.asarray(loaded[0], jnp.float32)).wrench)
+    jax.block_until_ready(mj.invert(inverter, jnp.asarray(loaded[0], jnp.float32)).wrench)
     compile_s = time.perf_counter() - t
     frames_report, seconds = _invert_cases(inverter, cases)
 

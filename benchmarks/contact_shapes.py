@@ -61,7 +61,7 @@ def main():
             state = mj.indenter_deformation(device, mj.random_indenters(rng, family))
             frame = render(state.displacement, state.light, jax.random.PRNGKey(i))
             start = time.perf_counter()
-            result = mj.invert_frame(inverter, jnp.asarray(frame))
+            result = mj.invert(inverter, jnp.asarray(frame))
             jax.block_until_ready(result.wrench)
             seconds.append(time.perf_counter() - start)
             truth.append(np.asarray(state.wrench))

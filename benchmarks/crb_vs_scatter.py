@@ -3,7 +3,7 @@
 Renders one `model`-fidelity frame of the Mid design at the nominal observability load,
 draws `--frames` noisy copies with the camera noise model the bound assumes (shot noise at
 4000 e- full well, 4 e- read noise, 8-bit quantisation), and estimates the wrench of each
-twice: by the band inversion (Levenberg–Marquardt from a cold start, [`invert_frame`][])
+twice: by the band inversion (Levenberg–Marquardt from a cold start, [`invert`][moirejax.invert])
 and by its refinement in pixels ([`refine_in_pixels`][], a maximum-likelihood fit of the
 whole frame started from the band estimate). Per axis and estimator: the empirical
 standard deviation and bias, the mean standard error the estimator reports, and whether
@@ -39,13 +39,11 @@ import numpy as np
 
 import moirejax as mj
 from moirejax import (
-    axis_ranges,
     camera_noise,
     Contact,
     cramer_rao,
     HighFidelity,
-    initial_state,
-    invert_frame,
+    invert,
     Inverter,
     nominal_load,
     refine_in_pixels,
@@ -121,12 +119,11 @@ def main(argv=None):
 
     # The noise-free frame fitted from the truth: a check that the fit reproduces its own
     # model (zero bias), and the bound with the exposure estimated too, as the fit does.
-    truth_state = initial_state(float(contact.x0), float(contact.y0), float(contact.radius), np.float32)
-    truth_state = truth_state.at[:6].set(wrench / axis_ranges(wrench.dtype))
+    truth_state = mj.LoadState.from_load(wrench, contact)
     exact = refine(clean, truth_state)
     crb_exposure = np.asarray(exact.sigma, np.float64)
     # Compile both estimators before timing them.
-    invert_frame(inverter, clean)
+    invert(inverter, clean)
     jax.block_until_ready(refine(clean, truth_state))
 
     # Shot and read noise as a Gaussian of their variance, then 8-bit quantisation (whose
@@ -137,7 +134,7 @@ def main(argv=None):
     for i in range(args.frames):
         frame = camera(jax.random.PRNGKey(i))
         start = time.perf_counter()
-        estimates.append(jax.block_until_ready(invert_frame(inverter, frame)))
+        estimates.append(jax.block_until_ready(invert(inverter, frame)))
         band_seconds += time.perf_counter() - start
         start = time.perf_counter()
         fits.append(jax.block_until_ready(refine(frame, estimates[-1])))

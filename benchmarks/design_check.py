@@ -49,7 +49,7 @@ from moirejax import (
     cramer_rao,
     gaussian_mtf,
     HighFidelity,
-    invert_frame,
+    invert,
     Inverter,
     load_schedule,
     nominal_load,
@@ -157,7 +157,7 @@ def _check(
     camera = jax.jit(lambda key, clean: camera_noise(key, clean, noise))
 
     def invert(frame):
-        estimate = invert_frame(inverter, frame)
+        estimate = invert(inverter, frame)
         return np.asarray(estimate.wrench, np.float64), int(estimate.status)
 
     # The same keys for both designs: each load meets the same noise draw in either.
@@ -219,7 +219,7 @@ def _pixel_check(design, nominal, repeats: int, noise: HighFidelity, model_shape
     fits, converged = [], 0
     for i in range(repeats):
         frame = camera(jax.random.PRNGKey(10_000 + i))
-        fit = refine_in_pixels(design, frame, invert_frame(inverter, frame), noise, mechanics_shape=PIXEL_MECHANICS)
+        fit = refine_in_pixels(design, frame, invert(inverter, frame), noise, mechanics_shape=PIXEL_MECHANICS)
         if bool(fit.converged):
             converged += 1
             fits.append(np.asarray(fit.wrench, np.float64))

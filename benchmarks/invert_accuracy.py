@@ -28,7 +28,7 @@ import moirejax as mj
 from moirejax import (
     Contact,
     dataset_reference,
-    invert_frames,
+    invert,
     Inverter,
     load_schedule,
     render_frame,
@@ -38,12 +38,12 @@ from moirejax import (
 
 
 def _summary(truth, result, schedule=None) -> dict:
-    metrics = wrench_metrics(truth, result["wrench"], result["sigma"])
+    metrics = wrench_metrics(truth, result.wrench, result.sigma)
     out = {k: {a: round(v, 5) for a, v in metrics[k].items()} for k in ("r2", "rmse", "coverage95")}
-    statuses, counts = np.unique(result["status"], return_counts=True)
+    statuses, counts = np.unique(result.status, return_counts=True)
     out["status_counts"] = {mj.Status(int(s)).name.lower(): int(c) for s, c in zip(statuses, counts)}
     if schedule is not None:
-        centre = np.hypot(result["x0"] - schedule.x0, result["y0"] - schedule.y0)
+        centre = np.hypot(result.contact.x0 - schedule.x0, result.contact.y0 - schedule.y0)
         out["centre_error_mm"] = {"median": float(np.median(centre)), "max": float(np.max(centre))}
     return out
 
@@ -76,17 +76,17 @@ def main(argv=None):
     result = {}
     start = time.perf_counter()
     inverter = Inverter(device, reference=reference, model_shape=grid)
-    result["noise_free"] = _summary(truth, invert_frames(inverter, clean, progress=False), sub)
+    result["noise_free"] = _summary(truth, invert(inverter, clean), sub)
     reference_noisy = np.mean([noisy(reference) for _ in range(8)], axis=0)
     inverter = Inverter(device, reference=reference_noisy, model_shape=grid)
-    result["noisy"] = _summary(truth, invert_frames(inverter, [noisy(f) for f in clean], progress=False), sub)
+    result["noisy"] = _summary(truth, invert(inverter, [noisy(f) for f in clean]), sub)
 
     with tempfile.TemporaryDirectory() as tmp:
         data = simulate_dataset(Path(tmp) / "unit", device, "mixed", args.frames + 8, seed=3, progress=False)
         dataset = mj.Dataset(data)
         idx = np.flatnonzero(dataset.contact)[: args.frames]
         inverter = Inverter(device, reference=dataset_reference(dataset), model_shape=grid)
-        inverted = invert_frames(inverter, [dataset.frame(int(i)) for i in idx], progress=False)
+        inverted = invert(inverter, [dataset.frame(int(i)) for i in idx])
         result["high_fidelity_uncalibrated"] = _summary(dataset.wrenches[idx], inverted)
     result["frames"] = int(len(keep))
     result["model_grid"] = list(inverter.model_shape)

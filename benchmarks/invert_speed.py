@@ -1,10 +1,10 @@
 """Per-frame inversion speed on 512x512 frames: `python benchmarks/invert_speed.py --json`.
 
 Prints the streaming single-frame latency (median, p90: `frame_tracker`, each frame
-continuing from the last, as `moirejax live` and `moirejax invert` run; and through the
-generic `track_frame`), the cold-start latency (Levenberg–Marquardt from the
-brightness guess), the throughput of a recording inverted in vectorised chunks
-(`invert_sequence`), the compile time, peak memory, and the floor: the same frame
+continuing from the last, as `moirejax live` and `moirejax invert` run; and through
+`Inverter.track` under `eqx.filter_jit`, which flattens the inverter at every call), the
+cold-start latency (Levenberg–Marquardt from the brightness guess), the throughput of a
+recording inverted in vectorised chunks (`invert(..., sequence=True)`), the compile time, peak memory, and the floor: the same frame
 demodulated by the plain numpy/OpenCV Fourier-transform method, which any pipeline pays
 before it can solve anything. Frames carry 1% pixel noise and 8-bit quantisation.
 """
@@ -14,6 +14,7 @@ import json
 import resource
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,14 +24,11 @@ from moirejax import (
     axis_ranges,
     Contact,
     frame_tracker,
-    invert_chunk,
-    invert_frame,
-    invert_sequence,
+    invert,
     Inverter,
     load_schedule,
     NumpyDemodulator,
     render_frame,
-    track_frame,
 )
 
 
@@ -59,7 +57,6 @@ def main(argv=None):
         return (np.round(np.clip(noisy, 0, 1) * 255) / 255).astype(np.float32)
 
     frames = [camera(render_frame(device, jnp.asarray(w), Contact(1.0, -0.5, 3.5))) for w in wrenches]
-    cold = jnp.full(10, jnp.nan)
 
     step = frame_tracker(inverter)
     start = time.perf_counter()
@@ -78,7 +75,9 @@ def main(argv=None):
         stream_wrenches.append(np.asarray(estimate.wrench))
     median_ms, p90_ms = _percentiles(times)
 
-    # The same stream through the generic entry point (the inverter flattened at every call).
+    # The same stream through a generic jit of the per-frame function (the inverter flattened
+    # at every call).
+    track_frame = eqx.filter_jit(Inverter.track)
     _, track = track_frame(inverter, frames[0], inverter.cold_track())
     generic_times = []
     for frame in frames[1:]:
@@ -94,34 +93,23 @@ def main(argv=None):
     for i in range(len(mixed)):
         frame = render_frame(device, jnp.asarray(mixed.wrench[i]), mixed.contact_at(i))
         start = time.perf_counter()
-        invert_frame(inverter, frame, cold).wrench.block_until_ready()
+        invert(inverter, frame).wrench.block_until_ready()
         cold_times.append(time.perf_counter() - start)
     cold_median_ms, cold_p90_ms = _percentiles(cold_times)
 
     start = time.perf_counter()
-    list(invert_sequence(inverter, frames[: args.batch], batch=args.batch))
+    invert(inverter, frames[: args.batch], sequence=True, batch=args.batch)
     batch_compile_s = time.perf_counter() - start
-    start = time.perf_counter()
-    list(invert_sequence(inverter, frames, batch=args.batch))
-    with_cold_start_fps = len(frames) / (time.perf_counter() - start)
-    # Steady state, as for the single-frame latency: the recording continues from the
-    # first frame's solution (one cold start, 0.2-2 s, would otherwise dominate a short run).
+    # The whole recording, its first frame a cold start, as `moirejax invert --batch` runs it.
     # Three passes, the median reported: the first pass after compiling reads 5-10% slower.
-    _, first = track_frame(inverter, frames[0], inverter.cold_track())
     passes = []
     for _ in range(3):
-        chunked, track = [], first
         start = time.perf_counter()
-        for i in range(1, len(frames), args.batch):
-            estimates, track = invert_chunk(inverter, frames[i : i + args.batch], track, args.batch)
-            chunked.extend(estimates)
-        jax.block_until_ready(track)
-        passes.append((len(frames) - 1) / (time.perf_counter() - start))
+        chunked = invert(inverter, frames, sequence=True, batch=args.batch)
+        passes.append(len(frames) / (time.perf_counter() - start))
     batched_fps = float(np.median(passes))
     # The chunked recording should agree with the stream to within the estimates' sigma.
-    sequence_minus_stream = max(
-        float(np.max(np.abs(np.asarray(a.wrench) - b) / np.asarray(a.sigma))) for a, b in zip(chunked, stream_wrenches)
-    )
+    sequence_minus_stream = float(np.max(np.abs(chunked.wrench[1:] - np.asarray(stream_wrenches)) / chunked.sigma[1:]))
 
     floor = NumpyDemodulator(inverter.demodulator, np.float32)
     frame_np = np.asarray(frames[-1], dtype=np.float32)
@@ -150,9 +138,8 @@ def main(argv=None):
         "batched_fps_passes": passes,
         "batch": args.batch,
         "sequence_minus_stream_max_sigmas": sequence_minus_stream,
-        "batched_fps_method": "invert_chunk: chunks vectorised from the previous chunk's solution, "
-        "continuing from the first frame's solution",
-        "batched_fps_with_cold_start": with_cold_start_fps,
+        "batched_fps_method": "invert(sequence=True): chunks vectorised from the previous chunk's solution, "
+        "the first frame a cold start",
         "compile_s": compile_s,
         "batch_compile_s": batch_compile_s,
         "floor_median_ms": floor_median_ms,

@@ -62,13 +62,13 @@ def main():
     device = mj.preset("mid", layout="lines", duty1=0.5, duty2=0.5)
     start = time.perf_counter()
     inverter = mj.Inverter(device, frames[~contact].mean(axis=0))
-    first = mj.invert_frame(inverter, jnp.asarray(frames[0], jnp.float32))
+    first = mj.invert(inverter, jnp.asarray(frames[0], jnp.float32))
     jax.block_until_ready(first.wrench)
     compile_s = time.perf_counter() - start
     estimates, seconds = [], []
     for frame in frames:
         t = time.perf_counter()
-        e = mj.invert_frame(inverter, jnp.asarray(frame, jnp.float32))
+        e = mj.invert(inverter, jnp.asarray(frame, jnp.float32))
         jax.block_until_ready(e.wrench)
         seconds.append(time.perf_counter() - t)
         estimates.append(jax.device_get(e))

@@ -10,15 +10,8 @@ import pytest
 
 import moirejax as mj
 from moirejax._conventions import WRENCH_SCALE
-from moirejax.inverse._inversion import (
-    _median,
-    invert_batch,
-    invert_frame,
-    invert_sequence,
-    Inverter,
-    Status,
-    track_frame,
-)
+from moirejax.inverse import invert, Inverter, LoadState, Status
+from moirejax.inverse._inversion import _median
 from moirejax.physics._contact import Contact
 from moirejax.physics._render import render_frame
 from moirejax.simulate._simulate import load_schedule
@@ -38,7 +31,7 @@ def test_noise_free_model_frames_invert_to_the_true_wrench(mid, inverter):
     schedule = load_schedule("mixed", 6, seed=11)
     for i in range(len(schedule)):
         frame = render_frame(mid, jnp.asarray(schedule.wrench[i]), schedule.contact_at(i))
-        estimate = invert_frame(inverter, frame)
+        estimate = invert(inverter, frame)
         assert Status(int(estimate.status)) in (Status.CONVERGED, Status.MAX_STEPS)
         scaled_error = (np.asarray(estimate.wrench) - schedule.wrench[i]) / WRENCH_SCALE
         # A few percent of each axis' range: the mechanics grid of the inversion is
@@ -61,7 +54,7 @@ def test_default_grid_follows_the_fringes_under_a_small_twisted_contact(mid, mon
     schedule = load_schedule("mixed", 208, seed=11)
     i = int(np.flatnonzero(schedule.contact)[48])
     assert schedule.radius[i] < 2.7 and abs(schedule.wrench[i, 5]) / WRENCH_SCALE[5] > 0.8
-    estimate = invert_frame(inverter, render_frame(mid, jnp.asarray(schedule.wrench[i]), schedule.contact_at(i)))
+    estimate = invert(inverter, render_frame(mid, jnp.asarray(schedule.wrench[i]), schedule.contact_at(i)))
     assert Status(int(estimate.status)) == Status.CONVERGED
     scaled_error = (np.asarray(estimate.wrench) - schedule.wrench[i]) / WRENCH_SCALE
     assert np.all(np.abs(scaled_error) < 0.04), scaled_error
@@ -78,7 +71,7 @@ def test_a_unit_that_does_not_glow_keeps_its_wrench(mid, inverter):
     wrench = np.array([0.05, -0.08, 0.7, -0.0002, -0.0012, 0.003])
     contact = Contact(x0=1.0, y0=-0.5, radius=3.0)
     dark = Inverter(mid, reference=render_frame(unit, jnp.zeros(6), Contact()))
-    estimate = invert_frame(dark, render_frame(unit, jnp.asarray(wrench), contact))
+    estimate = invert(dark, render_frame(unit, jnp.asarray(wrench), contact))
     assert Status(int(estimate.status)) in (Status.CONVERGED, Status.MAX_STEPS)
     scaled_error = (np.asarray(estimate.wrench) - wrench) / WRENCH_SCALE
     assert np.all(np.abs(scaled_error) < 0.05), scaled_error
@@ -112,17 +105,15 @@ def test_no_recompilation_per_frame(mid, inverter):
     def solve(inverter, frame, state):
         return inverter.solve(frame, state)
 
-    state = None
-    estimate = solve(inverter, frames[0], jnp.zeros(10))
+    estimate = solve(inverter, frames[0], LoadState.at_rest())
     for frame in frames[1:]:
         estimate = solve(inverter, frame, estimate.state)
     assert float(estimate.wrench[2]) == pytest.approx(1.1, abs=0.05)
-    del state
 
 
 def test_no_contact_frame_gives_zero_wrench(mid, inverter):
     frame = render_frame(mid, jnp.zeros(6), Contact())
-    estimate = invert_frame(inverter, frame)
+    estimate = invert(inverter, frame)
     assert Status(int(estimate.status)) == Status.NO_CONTACT
     assert np.all(np.asarray(estimate.wrench) == 0)
 
@@ -139,7 +130,7 @@ def test_no_contact_frame_gives_zero_wrench(mid, inverter):
 )
 def test_bad_frames_give_status_not_wrench(mid, inverter, make, status):
     frame = make(render_frame(mid, jnp.array([0.0, 0, 0.8, 0, 0, 0]), Contact()))
-    estimate = invert_frame(inverter, frame)
+    estimate = invert(inverter, frame)
     assert Status(int(estimate.status)) == status
     assert np.all(np.isnan(np.asarray(estimate.wrench)))
     assert status.message
@@ -152,12 +143,12 @@ def test_a_frame_the_model_cannot_explain_is_flagged_not_zeroed(mid, inverter):
     zero = render_frame(mid, jnp.zeros(6), Contact())
     one = render_frame(mid, press, Contact(-6.0, -6.0, 2.5))
     three = one + sum(render_frame(mid, press, Contact(x, y, 2.5)) - zero for x, y in ((6.0, -6.0), (0.0, 7.0)))
-    estimate = invert_frame(inverter, three)
+    estimate = invert(inverter, three)
     assert Status(int(estimate.status)) == Status.UNEXPLAINED, Status(int(estimate.status))
     assert np.all(np.isfinite(np.asarray(estimate.wrench))) and np.all(np.isfinite(np.asarray(estimate.sigma)))
     assert "explains less than half" in Status.UNEXPLAINED.message
     # One of them alone is explained.
-    assert Status(int(invert_frame(inverter, one).status)) in (Status.CONVERGED, Status.MAX_STEPS)
+    assert Status(int(invert(inverter, one).status)) in (Status.CONVERGED, Status.MAX_STEPS)
 
 
 def test_a_foreign_scene_is_a_bad_frame_and_a_heavy_press_is_not(mid, inverter):
@@ -168,25 +159,29 @@ def test_a_foreign_scene_is_a_bad_frame_and_a_heavy_press_is_not(mid, inverter):
 
     dtype = jnp.asarray(inverter.device.p1).dtype
     scene = jnp.asarray(resize(camera() / 255.0, (512, 512)), dtype)
-    estimate = invert_frame(inverter, scene)
+    estimate = invert(inverter, scene)
     assert Status(int(estimate.status)) == Status.BAD_FRAME and np.all(np.isnan(np.asarray(estimate.wrench)))
     # A press eight times the paper's range moves the phase near the contact, not the field:
     # it is solved, not refused.
     heavy = render_frame(mid, jnp.array([0.3, 0.0, 10.0, 0.0, 0.0, 0.02], dtype), Contact(1.0, -1.0, 4.0))
-    assert Status(int(invert_frame(inverter, heavy).status)) != Status.BAD_FRAME
+    assert Status(int(invert(inverter, heavy).status)) != Status.BAD_FRAME
 
 
 def test_wrong_size_is_a_clear_error(inverter):
     with pytest.raises((ValueError, TypeError), match="shape|dimension"):
-        invert_frame(inverter, jnp.zeros((100, 100)))
+        invert(inverter, jnp.zeros((100, 100)))
 
 
 def test_batch_matches_single(mid, inverter):
     frames = jnp.stack(
         [render_frame(mid, jnp.array([0.1, 0.0, fz, 0.0, 0.0, 0.0]), Contact(0.0, 0.0, 3.5)) for fz in (0.5, 0.9)]
     )
-    batch = invert_batch(inverter, frames)
-    single = invert_frame(inverter, frames[1])
+    # The per-frame solve composes with vmap: a batch solved in lockstep equals each frame alone.
+    batch = eqx.filter_jit(jax.vmap(lambda f: inverter.solve(f)))(frames)
+    single = invert(inverter, frames[1])
+    many = invert(inverter, frames)
+    assert many.wrench.shape == (2, 6) and many.state.scaled_wrench.shape == (2, 6)
+    np.testing.assert_allclose(many.wrench[1], np.asarray(single.wrench), rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(np.asarray(batch.wrench[1]), np.asarray(single.wrench), rtol=1e-3, atol=1e-4)
 
 
@@ -227,7 +222,7 @@ def test_tracking_agrees_with_levenberg_marquardt_and_never_retraces(mid, invert
         steps.append(int(estimate.steps))
         if i in (3, 9):
             # A stream refines on the fringe phase, as the cold solve does.
-            reference = invert_frame(inverter, frame)
+            reference = invert(inverter, frame)
             # Both stop within a fraction of a standard error of the least-squares solution.
             difference = np.abs(np.asarray(estimate.wrench) - np.asarray(reference.wrench))
             assert np.all(difference < 1.0 * np.asarray(reference.sigma) + 1e-4 * WRENCH_SCALE), difference
@@ -243,11 +238,12 @@ def test_noise_level_median_is_numpys(n):
     assert float(_median(jnp.asarray(values))) == pytest.approx(float(np.median(values)), rel=1e-12)
 
 
-def test_frame_tracker_is_track_frame_compiled_once(inverter, stream, monkeypatch):
+def test_frame_tracker_is_track_compiled_once(inverter, stream, monkeypatch):
     _, frames = stream
     expected, theirs = [], inverter.cold_track()
+    track = eqx.filter_jit(Inverter.track)
     for frame in frames[:4]:
-        estimate, theirs = mj.track_frame(inverter, frame, theirs)
+        estimate, theirs = track(inverter, frame, theirs)
         expected.append(estimate)
     # `Inverter.track` runs only while a program is traced: one trace for the whole stream.
     traced = eqx.debug.assert_max_traces(Inverter.track, max_traces=1)
@@ -263,8 +259,9 @@ def test_sequence_in_chunks_matches_the_stream_and_reports_bad_frames(mid, inver
     wrenches, frames = stream
     frames = list(frames)
     frames[6] = np.zeros_like(frames[6])
-    estimates = list(invert_sequence(inverter, frames, batch=4))
-    assert len(estimates) == len(frames)
+    stacked = invert(inverter, frames, sequence=True, batch=4)
+    estimates = [jax.tree_util.tree_map(lambda x, i=i: x[i], stacked) for i in range(len(frames))]
+    assert len(stacked.status) == len(frames)
     statuses = [Status(int(e.status)) for e in estimates]
     assert statuses[6] == Status.BAD_FRAME
     assert np.all(np.isnan(np.asarray(estimates[6].wrench)))
@@ -278,9 +275,10 @@ def test_sequence_in_chunks_matches_the_stream_and_reports_bad_frames(mid, inver
 
 def test_tracking_recovers_from_a_jump_to_an_unrelated_load(mid, inverter, stream):
     _, frames = stream
-    estimate, state = track_frame(inverter, frames[-1], inverter.cold_track())
+    step = mj.frame_tracker(inverter)
+    estimate, state = step(frames[-1], inverter.cold_track())
     far = np.asarray(render_frame(mid, jnp.array([-0.1, 0.08, 1.0, 0.0, 0.0, -0.004]), Contact(-4.0, 3.0, 3.0)))
-    estimate, state = track_frame(inverter, far, state)
+    estimate, state = step(far, state)
     assert Status(int(estimate.status)) == Status.CONVERGED
     error = np.abs(np.asarray(estimate.wrench) - [-0.1, 0.08, 1.0, 0.0, 0.0, -0.004]) / WRENCH_SCALE
     assert np.all(error < 0.08), error
@@ -291,7 +289,7 @@ def test_batches_are_split_over_the_devices_jax_sees():
     # the whole of this file passes with XLA_FLAGS=--xla_force_host_platform_device_count=2.)
     code = """
 import jax, jax.numpy as jnp
-from moirejax.inverse._inversion import _over_devices
+from moirejax.inverse._invert import _over_devices
 energy = jax.jit(lambda x: jax.vmap(lambda a: jnp.sum(a**2))(_over_devices(x)))
 x = jnp.arange(24.0).reshape(4, 3, 2)
 out = energy(x)
@@ -332,5 +330,5 @@ def test_contact_gate_reads_the_fringe_phase_not_the_brightness(mid):
     assert float(phase_change(inverter, jnp.asarray(eight_bit))) == pytest.approx(
         float(phase_change(inverter, jnp.asarray(eight_bit / np.float32(255)))), rel=1e-4
     )
-    assert Status(int(invert_frame(inverter, frame(21, zero, 0.7)).status)) == Status.NO_CONTACT
-    assert Status(int(invert_frame(inverter, pressed).status)) != Status.NO_CONTACT
+    assert Status(int(invert(inverter, frame(21, zero, 0.7)).status)) == Status.NO_CONTACT
+    assert Status(int(invert(inverter, pressed).status)) != Status.NO_CONTACT

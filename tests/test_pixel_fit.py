@@ -1,5 +1,3 @@
-import math
-
 import equinox as eqx
 import jax.numpy as jnp
 import jax.random as jr
@@ -8,9 +6,7 @@ import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax._conventions import WRENCH_SCALE
 from moirejax.design._observability import fisher_information
-from moirejax.inverse._inversion import initial_state
 from moirejax.inverse._pixel_fit import refine_in_pixels
 from moirejax.physics._contact import Contact
 from moirejax.physics._render import HighFidelity, pixel_noise_variance, render_frame
@@ -35,8 +31,7 @@ def _device():
 
 
 def _truth():
-    state = initial_state(X0, Y0, RADIUS).at[:6].set(jnp.asarray(WRENCH / WRENCH_SCALE))
-    return state.at[9].set(math.log(EXPOSURE))
+    return mj.LoadState.from_load(jnp.asarray(WRENCH), Contact(x0=X0, y0=Y0, radius=RADIUS), EXPOSURE)
 
 
 def _frame(device):
@@ -49,11 +44,12 @@ def test_noise_free_frame_recovers_the_load_from_a_perturbed_start():
     truth = _truth()
     # Off in every unknown, the wrench by about 2% of its range.
     offset = jnp.asarray([0.02, -0.02, 0.01, 0.02, -0.02, 0.02, 0.05, -0.05, 0.03, 0.01])
-    fit = _refine(device, _frame(device), truth + offset, NOISE, mechanics_shape=SHAPE)
+    start = mj.LoadState.from_vector(truth.vector() + offset)
+    fit = _refine(device, _frame(device), start, NOISE, mechanics_shape=SHAPE)
     assert int(fit.status) == int(mj.Status.CONVERGED) and bool(fit.converged)
     assert 2 <= int(fit.steps) <= 6
     assert np.all(np.abs(np.asarray(fit.wrench) - WRENCH) < 1e-3 * np.asarray(fit.sigma))
-    np.testing.assert_allclose(fit.state, truth, atol=1e-8)
+    np.testing.assert_allclose(fit.state.vector(), truth.vector(), atol=1e-8)
     assert float(fit.contact.radius) == pytest.approx(RADIUS, rel=1e-8)
     assert float(fit.exposure) == pytest.approx(EXPOSURE, rel=1e-8)
     assert float(fit.chi2) < 1e-12

@@ -17,7 +17,6 @@ from ._workflows import (
     evaluate as evaluate,
     heldout_ridge_r2 as heldout_ridge_r2,
     identification_problems as identification_problems,
-    invert_frames as invert_frames,
     load_calibrated as load_calibrated,
     ridge_baseline as ridge_baseline,
     spanning_frames as spanning_frames,

@@ -4,6 +4,10 @@ Outputs are checked before the long work starts, and written as a set at the end
 in a temporary folder beside them, then moved into place with the device file last, which
 records the SHA-256 of the head and report it belongs with. An interrupted job (Ctrl-C, a
 kill, a full disk) leaves the previous set as it was.
+
+It is one module because the three jobs share that fit set (its staging, writing and
+loading with the head), the report's tables and plots, and the pixel-ridge baseline every
+report compares with.
 """
 
 import hashlib
@@ -28,8 +32,8 @@ from .._fileio import (
     staging_folder,
     write_json,
 )
-from ..data import Dataset, unit_frame
-from ..inverse import invert_frame, Inverter, Status
+from ..data import Dataset
+from ..inverse import Estimate, invert, Inverter, Status
 from ..physics import Device, device_from_json, load_device, save_device
 from ._calibration import fit_physical_parameters, load_recipe, Recipe
 from ._metrics import plot_parity, plot_residuals, wrench_metrics
@@ -54,31 +58,6 @@ def dataset_reference(dataset: Dataset, limit: int = 16) -> np.ndarray:
     if not frames:
         raise DataError(f"{dataset.path}: none of its contact-free frames (column 'contact' = 0) can be read")
     return np.mean(frames, axis=0)
-
-
-def invert_frames(
-    inverter: Inverter, frames, *, init: np.ndarray | None = None, progress: bool = True, desc: str = "invert"
-) -> dict[str, np.ndarray]:
-    """Invert frames one by one; arrays of wrench, sigma, contact, status.
-
-    Cold starts, unless `init` gives every frame's start ([`Estimate.state`][moirejax.Estimate]
-    layout, one row per frame; a non-finite row is a cold start)."""
-    from tqdm.auto import tqdm
-
-    dtype = inverter.device.p1.dtype
-    cold = jnp.full(10, jnp.nan, dtype=dtype)
-    out: dict[str, list] = {k: [] for k in ("wrench", "sigma", "x0", "y0", "radius", "status")}
-    for i, frame in enumerate(tqdm(frames, desc=desc, unit="frame", disable=not progress)):
-        start = cold if init is None else jnp.asarray(init[i], dtype)
-        # uint8/uint16 frames (a camera's) are scaled to [0, 1], not read as saturated.
-        estimate = invert_frame(inverter, jnp.asarray(unit_frame(frame)), start)
-        out["wrench"].append(np.asarray(estimate.wrench))
-        out["sigma"].append(np.asarray(estimate.sigma))
-        out["x0"].append(float(estimate.contact.x0))
-        out["y0"].append(float(estimate.contact.y0))
-        out["radius"].append(float(estimate.contact.radius))
-        out["status"].append(int(estimate.status))
-    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def _head_path(device_path: Path) -> Path:
@@ -165,13 +144,14 @@ def load_calibrated(device_path: str | Path) -> tuple[Device, ResidualHead | Non
     return device, load_head(device_path.parent / head_name)
 
 
-def _apply_head(head: ResidualHead | None, result: dict[str, np.ndarray]) -> np.ndarray:
-    wrench = result["wrench"].copy()
+def _apply_head(head: ResidualHead | None, result: Estimate) -> np.ndarray:
+    wrench = np.array(result.wrench)
     if head is None:
         return wrench
-    ok = np.all(np.isfinite(wrench), axis=1) & (result["status"] != Status.NO_CONTACT)
+    ok = np.all(np.isfinite(wrench), axis=1) & (result.status != Status.NO_CONTACT)
     if np.any(ok):
-        wrench[ok] = head.correct(wrench[ok], result["x0"][ok], result["y0"][ok], result["radius"][ok])
+        contact = result.contact
+        wrench[ok] = head.correct(wrench[ok], contact.x0[ok], contact.y0[ok], contact.radius[ok])
     return wrench
 
 
@@ -417,19 +397,23 @@ def calibrate(
     # then learned the error of a solver that knows the answer, and on an independent
     # renderer's held-out loads it corrected Fz and Ty less (R2 0.84 and 0.77 against 0.88
     # and 0.81).
-    physical = invert_frames(inverter, frames, progress=progress, desc="invert calibration frames")
-    ok = np.all(np.isfinite(physical["wrench"]), axis=1) & (physical["status"] != Status.NO_CONTACT)
-    features = head_features(physical["wrench"][ok], physical["x0"][ok], physical["y0"][ok], physical["radius"][ok])
+    physical = invert(inverter, frames, progress=progress, desc="invert calibration frames")
+    ok = np.all(np.isfinite(physical.wrench), axis=1) & (physical.status != Status.NO_CONTACT)
+    features = head_features(
+        physical.wrench[ok], physical.contact.x0[ok], physical.contact.y0[ok], physical.contact.radius[ok]
+    )
     if ok.sum() >= MIN_HEAD_FRAMES:
-        head, head_record = train_residual_head(features, (wrenches[ok] - physical["wrench"][ok]) / WRENCH_SCALE)
+        head, head_record = train_residual_head(features, (wrenches[ok] - physical.wrench[ok]) / WRENCH_SCALE)
     else:
         # A learned correction from a few dozen frames extrapolates badly to other loads.
         head, head_record = None, {"skipped": f"{int(ok.sum())} usable frames, fewer than {MIN_HEAD_FRAMES}"}
     corrected = _apply_head(head, physical)
-    tilt, tilt_r2 = fit_tilt_matrix(physical["x0"][ok], physical["y0"][ok], wrenches[ok][:, 3:5], result.device)
+    tilt, tilt_r2 = fit_tilt_matrix(
+        physical.contact.x0[ok], physical.contact.y0[ok], wrenches[ok][:, 3:5], result.device
+    )
     fitted_device = eqx_replace_tilt(result.device, tilt)
-    metrics_physics = wrench_metrics(wrenches, physical["wrench"], physical["sigma"])
-    metrics = wrench_metrics(wrenches, corrected, physical["sigma"])
+    metrics_physics = wrench_metrics(wrenches, physical.wrench, physical.sigma)
+    metrics = wrench_metrics(wrenches, corrected, physical.sigma)
     baselines = cross_validated_ridge_r2(frames, wrenches, reference, baseline_sizes)
     report_dir = _report_dir(out)
     parameters = _parameter_table(nominal, fitted_device, result.uncertainty, dataset.true_device)
@@ -463,7 +447,7 @@ def calibrate(
             metrics,
             wrenches,
             corrected,
-            physical["sigma"],
+            physical.sigma,
             title=f"calibration fit ({len(idx)} frames, in-sample)",
             extra={
                 "physics_only": metrics_physics,
@@ -553,14 +537,14 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
     reference = dataset_reference(dataset)
     idx = _select(dataset, None)
     inverter = Inverter(device, reference=reference)
-    result = invert_frames(inverter, (dataset.frame(int(i)) for i in idx), progress=progress, desc="evaluate")
+    result = invert(inverter, (dataset.frame(int(i)) for i in idx), progress=progress, desc="evaluate")
     wrench = _apply_head(head, result)
     truth = dataset.wrenches[idx]
-    metrics = wrench_metrics(truth, wrench, result["sigma"])
-    statuses = {Status(int(s)).name.lower(): int(np.sum(result["status"] == s)) for s in np.unique(result["status"])}
+    metrics = wrench_metrics(truth, wrench, result.sigma)
+    statuses = {Status(int(s)).name.lower(): int(np.sum(result.status == s)) for s in np.unique(result.status)}
     extra: dict = {"status_counts": statuses}
     if head is not None:
-        extra["physics_only"] = wrench_metrics(truth, result["wrench"], result["sigma"])
+        extra["physics_only"] = wrench_metrics(truth, result.wrench, result.sigma)
     # Staged beside the outputs and moved in with metrics.json last: a rerun interrupted
     # part way leaves the previous report whole.
     with staging_folder(out_dir / "metrics.json") as staging:
@@ -569,7 +553,7 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
             metrics,
             truth,
             wrench,
-            result["sigma"],
+            result.sigma,
             title=f"evaluation on {Path(data).name}",
             extra=extra,
         )
@@ -609,9 +593,9 @@ def transfer(
         # unit's own (its fabrication), so check it on the new unit's frames, which it
         # never saw. On a pair of simulated units it cost 0.01 R² on the shear axes.
         inverter = Inverter(result.device, reference=reference, match_reference=False)
-        physical = invert_frames(inverter, frames, progress=progress, desc="check residual head")
-        ok = np.all(np.isfinite(physical["wrench"]), axis=1) & (physical["status"] != Status.NO_CONTACT)
-        without = float(np.mean(((physical["wrench"][ok] - wrenches[ok]) / WRENCH_SCALE) ** 2))
+        physical = invert(inverter, frames, progress=progress, desc="check residual head")
+        ok = np.all(np.isfinite(physical.wrench), axis=1) & (physical.status != Status.NO_CONTACT)
+        without = float(np.mean(((physical.wrench[ok] - wrenches[ok]) / WRENCH_SCALE) ** 2))
         with_head = float(np.mean(((_apply_head(head, physical)[ok] - wrenches[ok]) / WRENCH_SCALE) ** 2))
         head_check = {
             "frames": int(ok.sum()),

@@ -26,12 +26,11 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
         dataset_reference,
         evaluate,
         heldout_ridge_r2,
-        invert_frames,
         load_calibrated,
         load_recipe,
     )
     from ..data import Dataset
-    from ..inverse import Inverter
+    from ..inverse import invert, Inverter
     from ..simulate import simulate_dataset
 
     start = time.perf_counter()
@@ -71,9 +70,9 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     device, _ = load_calibrated(out_dir / "fit.json")
     inverter = Inverter(device, reference=dataset_reference(heldout))
     frames = [heldout.frame(i) for i in range(min(4 if smoke else 12, len(heldout)))]
-    invert_frames(inverter, frames[:1], progress=False)
+    invert(inverter, frames[:1])
     t0 = time.perf_counter()
-    invert_frames(inverter, frames, progress=False)
+    invert(inverter, frames)
     cold_ms = (time.perf_counter() - t0) / len(frames) * 1e3
 
     sizes = " / ".join(ridge)

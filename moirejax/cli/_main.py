@@ -1,4 +1,8 @@
-"""The `moirejax` command line: one subcommand per thing a user does."""
+"""The `moirejax` command line: one subcommand per thing a user does.
+
+It is one module because most of its length is the argument table of every subcommand,
+whose flags and help a user reads together; each command's body is a few lines calling the
+public API."""
 
 import argparse
 import importlib.metadata

@@ -38,18 +38,16 @@ pixel noise put there, somewhere on the frame ([`Inverter.phase_change`][]). Exp
 illumination and the fringes' contrast do not move the phase, and a load the model
 explains badly still moves it, so such a load is never reported as no contact.
 
-It is one module because the residual, its two solvers (Levenberg–Marquardt for cold
-frames, frozen-Jacobian iterations for streams), the covariance and the status all read
-the same `Inverter` fields and the same packed state; split apart, each piece would
-re-derive the others' layout of the residual vector.
+`Inverter` is one module because the residual, its two solvers (Levenberg–Marquardt for
+cold frames, frozen-Jacobian iterations for streams), the covariance and the status all read
+the same `Inverter` fields and the same layout of the residual vector (the amplitude, phase
+and brightness blocks, then the priors); split apart, each piece would re-derive that
+layout. What an inversion returns is in `_state.py`, the entry points in `_invert.py`.
 """
 
-import enum
-import functools
 import math
 import os
 import warnings
-from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -57,7 +55,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int, Real
+from jaxtyping import Array, Bool, Float, Real
 
 from .._conventions import NMM_PER_NM, WRENCH_SCALE
 from ..observe import (
@@ -73,16 +71,16 @@ from ..observe import (
     stray_beat_clearance,
     white_noise_variance,
 )
-from ..physics import Contact, Device
+from ..physics import Device
+from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track, TYPICAL_RADIUS, WRENCH_COORDINATES
 
 
-N_UNKNOWNS = 10
 # Prior widths: centre-of-pressure offset from the contact centre (N*mm of moment), and
 # log contact radius around 3.5 mm. A pressure not centred on its contact is a tilted
 # indenter; along line gratings it moves the fringes almost as the shear along the lines
 # does (docs/physics.md), and a wider prior trades one for the other.
 _TILT_PRIOR_NMM = 0.25
-_RADIUS_PRIOR = (math.log(3.5), 0.6)
+_RADIUS_PRIOR = (math.log(TYPICAL_RADIUS), 0.6)
 # Width of the wrench prior, in units of WRENCH_SCALE: a load is a priori about as large as
 # the calibrated range. Data that see an axis override it; data that do not (the shear
 # across a line grating's lines sees the fringes only through second-order effects) leave
@@ -121,71 +119,6 @@ _FRINGE_AGREEMENT = 0.5
 # fringes into the bands: on the renderer's frames of one load, 1% clipped read within 2%
 # of each axis' range, 3.4% within 7%, 7.3% within 20%, and 15% three and a half ranges off.
 _CLIPPED_SHARE = 0.05
-
-
-class Status(enum.IntEnum):
-    """Per-frame outcome of an inversion; `message` gives the human version."""
-
-    CONVERGED = 0
-    MAX_STEPS = 1
-    NONFINITE = 2
-    NO_CONTACT = 3
-    BAD_FRAME = 4
-    WRONG_SIZE = 5
-    UNREADABLE = 6
-    UNEXPLAINED = 7
-
-    @property
-    def message(self) -> str:
-        return _MESSAGES[self]
-
-
-_MESSAGES = {
-    Status.CONVERGED: "converged",
-    Status.MAX_STEPS: "solver hit its step limit; wrench is the last iterate and may be inaccurate",
-    Status.NONFINITE: "frame or solution contains NaN/inf; no wrench",
-    Status.NO_CONTACT: "no contact detected; wrench is zero",
-    Status.BAD_FRAME: (
-        "frame is black, more than 5% clipped at white (reduce the exposure), or does not show this unit's "
-        "fringes; no wrench"
-    ),
-    Status.WRONG_SIZE: "frame has the wrong size for this device; no wrench",
-    Status.UNREADABLE: "frame could not be read or decoded; no wrench",
-    Status.UNEXPLAINED: (
-        "in contact, but the model explains less than half of how the fringe phase changed, or only with a load "
-        "ten times its calibrated range; the wrench is the best fit and may be far off (a contact, unit, scene "
-        "or camera pose the model does not describe)"
-    ),
-}
-
-
-class Estimate(eqx.Module):
-    """The result of inverting one frame (or a batch, with a leading axis on every field).
-
-    - `wrench`: `[fx, fy, fz, tx, ty, tz]` in N and N·m.
-    - `covariance`: 6x6 covariance of the wrench; `sigma` its square-rooted diagonal.
-    - `contact`: the fitted [`Contact`][]; `exposure`: fitted exposure factor.
-    - `status`: an integer [`Status`][]; `steps`: solver steps; `rms`: the pixel noise level
-      that would explain the fit's residual (frame units); well above the camera noise
-      means the model does not explain the frame.
-    - `state`: the solver's unknowns, to warm-start the next frame.
-    """
-
-    wrench: Float[Array, "*b 6"]
-    covariance: Float[Array, "*b 6 6"]
-    sigma: Float[Array, "*b 6"]
-    contact: Contact
-    exposure: Float[Array, "*b"]
-    status: Int[Array, "*b"]
-    steps: Int[Array, "*b"]
-    rms: Float[Array, "*b"]
-    state: Float[Array, "*b 10"]
-
-
-def _unpack(y: Float[Array, "10"]) -> tuple[Float[Array, "6"], Contact, Float[Array, ""]]:
-    wrench = y[:6] * jnp.asarray(WRENCH_SCALE, y.dtype)
-    contact = Contact(x0=y[6], y0=y[7], radius=jnp.exp(y[8]))
-    return wrench, contact, jnp.exp(y[9])
 
 
 def model_grid_for(
@@ -235,13 +168,6 @@ def default_carriers() -> bool | None:
     if override not in ("", "0", "1"):
         raise ValueError(f"MOIREJAX_CARRIERS must be 0 or 1, got {override!r}")
     return None if override in ("", "1") else False
-
-
-def initial_state(x0: float = 0.0, y0: float = 0.0, radius: float = 3.5, dtype=float) -> Float[Array, "10"]:
-    """The solver's ten unknowns ([`Estimate.state`][moirejax.Estimate]) at zero load and a
-    contact guess: the wrench over the paper's ranges (six), the contact centre (mm), the
-    log contact radius and the log exposure."""
-    return jnp.asarray([0, 0, 0, 0, 0, 0, x0, y0, math.log(radius), 0.0], dtype=dtype)
 
 
 class Inverter(eqx.Module):
@@ -385,7 +311,7 @@ class Inverter(eqx.Module):
             rows, cols = default_model_shape(device)
             model_shape = (max(rows, needed), max(cols, needed))
         self.model_shape = (int(model_shape[0]), int(model_shape[1]))
-        zero = initial_state(dtype=device.p1.dtype)
+        zero = LoadState.at_rest(dtype=device.p1.dtype)
         if reference is None:
             self.model_reference = self._predict_now(zero, None)
             self.reference = self.model_reference
@@ -414,15 +340,15 @@ class Inverter(eqx.Module):
         self.model = band_model(self.device, self.demodulator, self.model_shape, self.reference.reference_wavevector)
         # The demodulator divides by the apodization envelope, which amplifies noise near
         # the border; weighting by the envelope undoes that (and drops the border).
-        self.fringe_weight = self.demodulator.fringe_envelope.astype(zero.dtype)
-        self.brightness_weight = self.demodulator.brightness_envelope.astype(zero.dtype)
-        self.amplitude_weight = jnp.ones((), zero.dtype)
+        self.fringe_weight = self.demodulator.fringe_envelope.astype(zero.x0.dtype)
+        self.brightness_weight = self.demodulator.brightness_envelope.astype(zero.x0.dtype)
+        self.amplitude_weight = jnp.ones((), zero.x0.dtype)
         self.noise_residuals = self._unit_noise_residuals()
         self.noise_power = jnp.sum(self.noise_residuals**2) / self.noise_residuals.shape[0]
         # Integrated brightness excess per newton of a centred press: starts Fz.
-        press = zero.at[2].set(1.0 / WRENCH_SCALE[2])
+        press = LoadState.from_load(jnp.asarray([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], zero.x0.dtype), zero.contact)
         excess = self._predict_now(press, None).brightness - self._predict_now(zero, None).brightness
-        self.glow_per_newton = jnp.sum(excess * self.demodulator.brightness_envelope.astype(zero.dtype))
+        self.glow_per_newton = jnp.sum(excess * self.demodulator.brightness_envelope.astype(zero.x0.dtype))
         # The phase noise of a frame against the reference at each coarse-grid point, per unit
         # of white pixel variance: the part of the unit-noise fringe residual across the
         # fringe phasor (half of it). A frame's own pixel variance and the reference's
@@ -431,17 +357,20 @@ class Inverter(eqx.Module):
         unit_fringe = self.noise_residuals[:, : 2 * families * m * n].reshape(-1, 2, families, m, n)
         self.unit_phase_noise = 0.5 * jnp.mean(jnp.sum(unit_fringe**2, axis=1), axis=0)
         self.reference_noise = (
-            jnp.zeros((), zero.dtype) if reference is None else white_noise_variance(jnp.asarray(reference, zero.dtype))
+            jnp.zeros((), zero.x0.dtype)
+            if reference is None
+            else white_noise_variance(jnp.asarray(reference, zero.x0.dtype))
         )
 
-    def _predict_now(self, y, reference_wavevector) -> FringeFields:
+    def _predict_now(self, state: LoadState, reference_wavevector) -> FringeFields:
         # The constructor's predictions, compiled as one program: run op by op, each of the
-        # model's operations compiles on its own, which took 8 s of a first Inverter.
-        return _bands_at_state(self.device, self.demodulator, y, reference_wavevector, self.model_shape)
+        # model's operations compiles on its own.
+        return _bands_at_state(self.device, self.demodulator, state, reference_wavevector, self.model_shape)
 
     def _predict(self, y) -> FringeFields:
         # Observed fields refer to the reference frame's wavevectors (`observe`), as the model does.
-        return self.model(*_unpack(y))
+        state = LoadState.from_vector(y)
+        return self.model(state.wrench, state.contact, state.exposure)
 
     def _unit_noise_residuals(self, samples: int = 48) -> Float[Array, "samples n"]:
         """Data residuals that unit white pixel noise alone produces, `samples` draws.
@@ -502,16 +431,17 @@ class Inverter(eqx.Module):
         return self.band_residual(observed, self._predict(y))
 
     def _prior_residuals(self, y, noise):
-        wrench, contact, _ = _unpack(y)
+        state = LoadState.from_vector(y)
+        wrench = state.wrench
         fz = wrench[2]
         tilt = (
-            jnp.stack([fz * contact.y0 - wrench[3] * NMM_PER_NM, fz * contact.x0 + wrench[4] * NMM_PER_NM])
+            jnp.stack([fz * state.y0 - wrench[3] * NMM_PER_NM, fz * state.x0 + wrench[4] * NMM_PER_NM])
             / _TILT_PRIOR_NMM
         )
-        radius = (y[8] - _RADIUS_PRIOR[0]) / _RADIUS_PRIOR[1]
-        exposure = y[9] / _EXPOSURE_PRIOR
+        radius = (state.log_radius - _RADIUS_PRIOR[0]) / _RADIUS_PRIOR[1]
+        exposure = state.log_exposure / _EXPOSURE_PRIOR
         # Priors are in units of the data noise so their weight does not depend on it.
-        return jnp.concatenate([tilt, radius[None], y[:6] / _WRENCH_PRIOR, exposure[None]]) * noise
+        return jnp.concatenate([tilt, radius[None], state.scaled_wrench / _WRENCH_PRIOR, exposure[None]]) * noise
 
     def residuals(self, y, args):
         """Whitened data residuals followed by the prior residuals (optimistix signature)."""
@@ -579,10 +509,10 @@ class Inverter(eqx.Module):
         screen, observed, _, _ = self._prepare(frame)
         return self._phase_change_statistic(observed, screen)
 
-    def initial_guess(self, observed: FringeFields) -> Float[Array, "10"]:
+    def initial_guess(self, observed: FringeFields) -> LoadState:
         """A cold start from the brightness excess: its centroid places the contact, its
-        integral sets Fz through the model's glow per newton, and a centred pressure
-        gives Tx, Ty."""
+        integral sets Fz through the model's glow per newton, and a centred pressure gives
+        Tx, Ty."""
         # Only a start: the brightness excess places it whether or not the residual uses the
         # brightness band (a unit that does not glow falls back on the fringe change).
         excess = (observed.brightness - self.reference.brightness) * self.demodulator.brightness_envelope.astype(
@@ -599,20 +529,11 @@ class Inverter(eqx.Module):
         inside = self.demodulator.brightness_envelope > 0.2 * jnp.max(self.demodulator.brightness_envelope)
         x0, y0 = self._peak_centroid(jnp.where(inside, jnp.maximum(relative, 0.0), 0.0).astype(excess.dtype))
         fz = jnp.clip(jnp.sum(excess) / self.glow_per_newton, 0.0, 3.0)
-        y_init = initial_state(dtype=excess.dtype)
         scale = jnp.asarray(WRENCH_SCALE, excess.dtype)
-        return (
-            y_init.at[2]
-            .set(fz / scale[2])
-            .at[3]
-            .set(y0 * fz / NMM_PER_NM / scale[3])
-            .at[4]
-            .set(-x0 * fz / NMM_PER_NM / scale[4])
-            .at[6]
-            .set(x0)
-            .at[7]
-            .set(y0)
-        )
+        zero = jnp.zeros((), excess.dtype)
+        moment = fz / NMM_PER_NM
+        scaled = jnp.stack([zero, zero, fz / scale[2], y0 * moment / scale[3], -x0 * moment / scale[4], zero])
+        return LoadState(scaled, x0, y0, jnp.log(jnp.asarray(TYPICAL_RADIUS, excess.dtype)), zero)
 
     def fringe_change_centre(self, observed: FringeFields) -> Float[Array, "2"]:
         """Where the fringes changed most from the reference: the centroid (mm, contact
@@ -646,7 +567,7 @@ class Inverter(eqx.Module):
         dtype = self.device.p1.dtype
         n = self.noise_residuals.shape[1]
         return Track(
-            state=jnp.full(N_UNKNOWNS, jnp.nan, dtype),
+            state=LoadState.from_vector(jnp.full(N_UNKNOWNS, jnp.nan, dtype)),
             jacobian=jnp.zeros((n, N_UNKNOWNS), dtype),
             change=jnp.zeros(n, dtype),
             valid=jnp.asarray(False),
@@ -792,14 +713,15 @@ class Inverter(eqx.Module):
         solver = optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol, linear_solver=lx.QR())
         zero_cost = jnp.sum(self._zero_residuals(args[0]) ** 2)
         fringe_centre = self.fringe_change_centre(args[0])
+        first = LoadState.from_vector(y0)
         fallbacks = jnp.stack(
             [
-                y0.at[:2].set(0.0).at[6:8].set(fringe_centre),
-                y0.at[6:8].multiply(0.5),
-                y0.at[0].set(0.5),
-                y0.at[0].set(-0.5),
-                y0.at[1].set(0.5),
-                y0.at[1].set(-0.5),
+                first.with_shear(0.0, 0.0).with_contact_at(fringe_centre[0], fringe_centre[1]).vector(),
+                first.with_contact_at(0.5 * first.x0, 0.5 * first.y0).vector(),
+                first.with_shear(0.5, first.scaled_wrench[1]).vector(),
+                first.with_shear(-0.5, first.scaled_wrench[1]).vector(),
+                first.with_shear(first.scaled_wrench[0], 0.5).vector(),
+                first.with_shear(first.scaled_wrench[0], -0.5).vector(),
             ]
         )
 
@@ -812,7 +734,8 @@ class Inverter(eqx.Module):
 
         def body(carry):
             k, y, cost, result, steps, more = carry
-            start = jnp.where(k == 0, y0, jnp.where(k == 1, y.at[:2].set(0.0), fallbacks[jnp.clip(k - 2, 0, None)]))
+            no_shear = LoadState.from_vector(y).with_shear(0.0, 0.0).vector()
+            start = jnp.where(k == 0, y0, jnp.where(k == 1, no_shear, fallbacks[jnp.clip(k - 2, 0, None)]))
             sol = optx.least_squares(self.residuals, solver, start, args=args, max_steps=self.max_steps, throw=False)
             new_cost = jnp.sum(self.residuals(sol.value, args) ** 2)
             better = (k == 0) | (jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf) < cost)
@@ -884,9 +807,10 @@ class Inverter(eqx.Module):
         prior_part = inverse @ (prior_jac.T @ prior_jac) @ inverse * prior_weight**2
         cov_y = unit_cov * variance + prior_part
         scale = jnp.asarray(WRENCH_SCALE, dtype)
-        covariance = cov_y[:6, :6] * scale[:, None] * scale[None, :]
+        covariance = cov_y[WRENCH_COORDINATES, WRENCH_COORDINATES] * scale[:, None] * scale[None, :]
         y_out = y + pending
-        wrench, contact, exposure = _unpack(y_out)
+        solution = LoadState.from_vector(y_out)
+        wrench, contact, exposure = solution.wrench, solution.contact, solution.exposure
         # Contact from the data: has the fringe phase moved beyond its noise somewhere?
         in_contact = self._phase_change_statistic(observed, screen) > self.contact_threshold
         status = _status(result, screen, in_contact, y)
@@ -897,7 +821,7 @@ class Inverter(eqx.Module):
         noise_cost = (screen.noise_variance + self.reference_noise) * jnp.sum(self.unit_phase_noise)
         left = jnp.sum(r_data[size : 2 * size] ** 2) - noise_cost
         change = jnp.sum(r_zero[size : 2 * size] ** 2) - noise_cost
-        implausible = jnp.any(jnp.abs(y_out[:6]) > _IMPLAUSIBLE_RANGES)
+        implausible = jnp.any(jnp.abs(solution.scaled_wrench) > _IMPLAUSIBLE_RANGES)
         unexplained = (left > _UNEXPLAINED_SHARE * jnp.maximum(change, 0.0)) | implausible
         # An unexplained frame keeps its wrench and covariance, and a converged one still
         # seeds the next frame of a stream: the flag is for the user, not the solver.
@@ -917,11 +841,11 @@ class Inverter(eqx.Module):
             status=status,
             steps=steps,
             rms=jnp.sqrt(variance),
-            state=jnp.where(ok, y_out, start),
+            state=LoadState.from_vector(jnp.where(ok, y_out, start)),
         )
         # Only a converged contact is a good linearisation point for the next frame.
         track = Track(
-            state=jnp.where(ok, y, jnp.nan),
+            state=LoadState.from_vector(jnp.where(ok, y, jnp.nan)),
             jacobian=jacobian,
             change=r_zero - r_data,
             valid=converged,
@@ -998,7 +922,7 @@ class Inverter(eqx.Module):
         return y, r, jacobian, steps + jnp.sum(refine_steps).astype(steps.dtype), result, lights[best]
 
     def track(self, frame: Real[Array, "h w"], track: "Track") -> tuple[Estimate, "Track"]:
-        """Invert one frame of a stream; pure and jit-able (see [`track_frame`][]).
+        """Invert one frame of a stream; pure and jit-able (see [`frame_tracker`][]).
 
         With a valid `track`, a few frozen-Jacobian Gauss–Newton iterations from the last
         solution on the problem that solution was refined on (fringe phase, with the contact
@@ -1010,10 +934,13 @@ class Inverter(eqx.Module):
         """
         screen, observed, _, noise = self._prepare(frame)
         args = (observed, noise)
-        cold = self.initial_guess(observed)
-        usable = track.valid & jnp.all(jnp.isfinite(track.state))
-        warm = jnp.where(usable, track.state, cold)
+        cold = self.initial_guess(observed).vector()
+        last = track.state.vector()
+        usable = track.valid & jnp.all(jnp.isfinite(last))
+        warm = jnp.where(usable, last, cold)
         fit = self._fit_for(track.light)
+        # The zero-load residual weighs the bands alone, so the contact light a solution is
+        # refined with does not change it: one for the whole frame.
         r_zero = fit._zero_residuals(observed)
         # The last frame's prediction at `warm` gives its residual here without a model run.
         r_warm = jax.lax.cond(
@@ -1057,15 +984,15 @@ class Inverter(eqx.Module):
         y, r, jacobian, steps, result, pending, light = jax.lax.cond(accepted, fast, slow, None)
         fit = self._fit_for(light)
         estimate, next_track = fit._finish(
-            screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, warm, pending
+            screen, observed, r_zero, noise, y, r, jacobian, steps, result, warm, pending
         )
         return estimate, eqx.tree_at(lambda t: t.light, next_track, light)
 
-    def solve(self, frame: Real[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
-        """Invert one frame with Levenberg–Marquardt. Pure and jit-able; see [`invert_frame`][].
+    def solve(self, frame: Real[Array, "h w"], init: LoadState | None = None) -> Estimate:
+        """Invert one frame with Levenberg–Marquardt. Pure and jit-able; see [`invert`][].
 
-        `init` warm-starts the solver (the previous frame's `Estimate.state`, or a known load
-        and contact); `None` or a non-finite `init` means a cold start from the brightness
+        `init` warm-starts the solver (a [`LoadState`][]: the previous frame's
+        `Estimate.state`, or [`LoadState.from_load`][] of a known load and contact); `None` or a non-finite `init` means a cold start from the brightness
         excess. A warm start that explains the frame better than the cold guess is solved
         from there alone, without the further starts a cold solve may try. Streams are faster
         through [`Inverter.track`][]. A frame is read in [0, 1]; 8- and 16-bit integer
@@ -1079,14 +1006,15 @@ class Inverter(eqx.Module):
         """
         screen, observed, r_zero, noise = self._prepare(frame)
         args = (observed, noise)
-        cold = self.initial_guess(observed)
+        cold = self.initial_guess(observed).vector()
         if init is None:
             y0, more_starts = cold, jnp.asarray(True)
         else:
             # Warm start when it explains the frame better than the cold guess does: true
             # for a camera stream, false after a jump to an unrelated load.
-            usable = jnp.all(jnp.isfinite(init))
-            warm = jnp.where(usable, init, cold)
+            start = init.vector().astype(cold.dtype)
+            usable = jnp.all(jnp.isfinite(start))
+            warm = jnp.where(usable, start, cold)
             y0, _ = self._best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
             # A warm start that wins is in the right basin already: the further starts are
             # for cold guesses (on a unit the model does not describe exactly, every frame
@@ -1100,7 +1028,7 @@ class Inverter(eqx.Module):
             # No load to find: the unknowns stay at zero load, where the Jacobian still gives
             # the interval of a load the noise could hide.
             fit = self._fit_for(1.0)
-            y = y0.at[:6].set(0.0)
+            y = LoadState.from_vector(y0).unloaded().vector()
             steps = jnp.zeros((), jnp.int32)
             light = jnp.ones((), y.dtype)
             return y, fit.residuals(y, args), fit._data_jacobian(y, observed), steps, optx.RESULTS.successful, light
@@ -1128,8 +1056,9 @@ class Inverter(eqx.Module):
             screen, observed, _, noise = self._prepare(frame)
             args = (observed, noise)
             r_zero = fit._zero_residuals(observed)
-            r_start = jnp.concatenate([r_zero - track.change, fit._prior_residuals(track.state, noise)])
-            y, r, jacobian, steps, accepted, pending = fit._chord(track.state, r_start, track.jacobian, args)
+            last = track.state.vector()
+            r_start = jnp.concatenate([r_zero - track.change, fit._prior_residuals(last, noise)])
+            y, r, jacobian, steps, accepted, pending = fit._chord(last, r_start, track.jacobian, args)
             estimate, frame_track = fit._finish(
                 screen, observed, r_zero, noise, y, r, jacobian, steps, optx.RESULTS.successful, y, pending
             )
@@ -1145,32 +1074,18 @@ class Inverter(eqx.Module):
 
 
 @eqx.filter_jit
-def _bands_at_state(device: Device, demodulator: Demodulator, y, reference_wavevector, model_shape) -> FringeFields:
-    wrench, contact, exposure = _unpack(y)
+def _bands_at_state(
+    device: Device, demodulator: Demodulator, state: LoadState, reference_wavevector, model_shape
+) -> FringeFields:
     return predicted_bands(
         device,
         demodulator,
-        wrench,
-        contact,
-        exposure,
+        state.wrench,
+        state.contact,
+        state.exposure,
         model_shape=model_shape,
         reference_wavevector=reference_wavevector,
     )
-
-
-class Track(eqx.Module):
-    """What a stream carries from frame to frame: the last solution, the data Jacobian
-    there, and the model's predicted change of the data from zero load there (so the
-    next frame's residual at the last solution costs no model run); `valid` is false
-    before the first converged contact; `light` is the scale of the contact light the
-    solution was refined with (see [`Inverter.solve`][]). Make the first one with
-    [`Inverter.cold_track`][]."""
-
-    state: Float[Array, "10"]
-    jacobian: Float[Array, "n 10"]
-    change: Float[Array, " n"]
-    valid: Bool[Array, ""]
-    light: Float[Array, ""]
 
 
 class _Screen(eqx.Module):
@@ -1204,147 +1119,3 @@ def _status(result, screen: _Screen, in_contact, y):
     status = jnp.where(screen.refused, Status.BAD_FRAME, status)
     status = jnp.where(screen.finite & solution_finite, status, Status.NONFINITE)
     return status.astype(jnp.int32)
-
-
-def _over_devices(frames: Float[Array, "b h w"]) -> Float[Array, "b h w"]:
-    """Inside a jit: split a batch of frames over every device JAX sees, so a recording
-    scales to more devices with no code change; unchanged on one device, or when the batch
-    does not divide evenly (callers pad it, see [`invert_chunk`][])."""
-    devices = jax.devices()
-    if len(devices) == 1 or frames.shape[0] % len(devices):
-        return frames
-    mesh = jax.sharding.Mesh(np.asarray(devices), ("frames",))
-    return jax.lax.with_sharding_constraint(
-        frames, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("frames"))
-    )
-
-
-@eqx.filter_jit
-def invert_frame(inverter: Inverter, frame: Real[Array, "h w"], init: Float[Array, "10"] | None = None) -> Estimate:
-    """Invert one frame, warm-started from `init` (the previous frame's `Estimate.state`)."""
-    return inverter.solve(frame, init)
-
-
-@eqx.filter_jit
-def invert_batch(
-    inverter: Inverter, frames: Real[Array, "b h w"], init: Float[Array, "b 10"] | None = None
-) -> Estimate:
-    """Invert a batch of frames independently (vmapped; split over the devices JAX sees
-    when the batch divides evenly among them).
-
-    Under `vmap` the frames run the solver's starts in lockstep: when one frame of the
-    batch needs the five fallback starts, every frame pays for seven Levenberg–Marquardt
-    solves. A stream is much cheaper through [`track_frame`][] or [`invert_sequence`][].
-    """
-    frames = _over_devices(frames)
-    if init is None:
-        return jax.vmap(lambda f: inverter.solve(f, None))(frames)
-    return jax.vmap(inverter.solve)(frames, init)
-
-
-@eqx.filter_jit
-def track_frame(inverter: Inverter, frame: Real[Array, "h w"], track: Track) -> tuple[Estimate, Track]:
-    """Invert the next frame of a stream: `estimate, track = track_frame(inverter, frame, track)`,
-    starting from `inverter.cold_track()`. The fast path of a camera stream."""
-    return inverter.track(frame, track)
-
-
-def frame_tracker(inverter: Inverter) -> Callable[[Float[Array, "h w"], Track], tuple[Estimate, Track]]:
-    """[`track_frame`][] with `inverter` bound: `step = frame_tracker(inverter)`, then
-    `estimate, track = step(frame, track)` per frame, the same results.
-
-    For a camera loop. An `Inverter` is some 130 arrays, and handing them to a compiled
-    function through `eqx.filter_jit` flattens them again at every call; here they are
-    flattened once, and each frame goes through `jax.jit`'s own dispatch.
-    The step compiles on its first frame and never again for frames of the device's size
-    and dtype.
-    """
-    arrays, static = eqx.partition(inverter, eqx.is_array)
-    step = jax.jit(lambda arrays, frame, track: eqx.combine(arrays, static).track(frame, track))
-    return functools.partial(step, arrays)
-
-
-@eqx.filter_jit
-def _chord_batch(inverter: Inverter, frames, track: Track):
-    return inverter.chord_batch(_over_devices(frames), track)
-
-
-@eqx.filter_jit
-def _relinearise(inverter: Inverter, track: Track) -> Track:
-    # The data Jacobian depends on the frame only through the reference wavevectors, which
-    # every frame shares with the reference.
-    jacobian = inverter._fit_for(track.light)._data_jacobian(track.state, inverter.reference)
-    return eqx.tree_at(lambda t: t.jacobian, track, jnp.where(track.valid, jacobian, track.jacobian))
-
-
-def invert_chunk(inverter: Inverter, frames, track: Track, batch: int) -> tuple[list[Estimate], Track]:
-    """Invert up to `batch` consecutive frames of a stream that continues from `track`.
-
-    The frames go through frozen-Jacobian iterations from `track`, vectorised
-    ([`Inverter.chord_batch`][]; a short chunk is padded so one program serves all) and
-    split over the devices JAX sees; frames those do not settle are solved one by one
-    with [`Inverter.track`][] from the previous frame's track, which also starts a stream
-    when `track` is not valid yet. Returns the estimates, in order, and the track to
-    continue from.
-    """
-    dtype = np.dtype(inverter.device.p1.dtype)
-    frames = [np.asarray(f, dtype) for f in frames]
-    n = len(frames)
-    if n > batch:
-        raise ValueError(f"{n} frames do not fit a chunk of {batch}")
-    out: list = [None] * n
-    start = 0
-    # Nothing to linearise around yet: solve frames one by one until one converges.
-    while start < n and not bool(track.valid):
-        out[start], track = track_frame(inverter, frames[start], track)
-        start += 1
-    if start < n:
-        # Padded to the chunk size (one program serves all), and up to a whole number of
-        # frames per device.
-        size = -(-batch // jax.device_count()) * jax.device_count()
-        stack = np.stack(frames[start:] + [frames[-1]] * (size - (n - start)))
-        estimates, accepted, tracks = _chord_batch(inverter, stack, track)
-        # One transfer, then numpy slicing: a device slice per field and frame costs more
-        # than a frame's solve.
-        estimates, accepted, status = jax.device_get((estimates, accepted, estimates.status))
-        latest = None  # the last frame whose track the stream continues from
-        for i in range(start, n):
-            j = i - start
-            if accepted[j]:
-                out[i] = jax.tree_util.tree_map(lambda x, j=j: x[j], estimates)
-                # A converged frame's track carries its Broyden-updated Jacobian on, as a
-                # stream would; other settled frames (no contact, bad) leave it as it was.
-                if status[j] == Status.CONVERGED:
-                    latest = j
-            else:
-                if latest is not None:
-                    track, latest = jax.tree_util.tree_map(lambda x, j=latest: x[j], tracks), None
-                out[i], track = track_frame(inverter, frames[i], track)
-        if latest is not None:
-            track = jax.tree_util.tree_map(lambda x, j=latest: x[j], tracks)
-    # A Jacobian carried over many frames by secant updates drifts, and a whole chunk's
-    # frames stop where it says the gradient vanishes: a fresh one per chunk keeps them
-    # within a fraction of a standard error of the least-squares solution.
-    return out, _relinearise(inverter, track)
-
-
-def invert_sequence(inverter: Inverter, frames, *, batch: int = 16, progress: bool = False, desc: str = "invert"):
-    """Invert an ordered sequence of frames (a recording) for throughput; yields `Estimate`s.
-
-    Chunks of `batch` frames go through [`invert_chunk`][]. The results match a
-    frame-by-frame [`track_frame`][] stream to about one standard error (both stop
-    iterating within a quarter of one). `frames` is an iterable of `(h, w)` arrays.
-    """
-    from tqdm.auto import tqdm
-
-    track = inverter.cold_track()
-    pending: list = []
-    for frame in tqdm(frames, desc=desc, unit="frame", disable=not progress):
-        pending.append(frame)
-        if len(pending) == batch:
-            estimates, track = invert_chunk(inverter, pending, track, batch)
-            yield from estimates
-            pending = []
-    if pending:
-        estimates, track = invert_chunk(inverter, pending, track, batch)
-        yield from estimates

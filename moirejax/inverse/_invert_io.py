@@ -12,7 +12,9 @@ import numpy as np
 
 from .._conventions import WRENCH_AXES
 from .._fileio import atomic_write_text, check_output_file, DataError, DataWarning
-from ._inversion import Estimate, frame_tracker, invert_chunk, Inverter, Status
+from ._inversion import Inverter
+from ._invert import _invert_chunk, frame_tracker
+from ._state import Estimate, Status
 
 
 CSV_HEADER = (
@@ -212,7 +214,7 @@ def invert_recording(
 
     Frames are inverted as a stream ([`frame_tracker`][]: each continues from the last
     good one), or, with `batch > 1`, in chunks of `batch` consecutive frames vectorised
-    from the previous chunk's solution ([`invert_chunk`][]; higher throughput, the same
+    from the previous chunk's solution (as [`invert`][] with `sequence=True`; higher throughput, the same
     estimates to about one standard error). Bad frames give status rows, never an
     exception. Returns the count of each status.
 
@@ -237,7 +239,7 @@ def invert_recording(
         nonlocal track
         if not pending:
             return
-        estimates, track = invert_chunk(inverter, [f for _, f in pending], track, batch)
+        estimates, track = _invert_chunk(inverter, [f for _, f in pending], track, batch)
         stacked = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *estimates)
         rows.extend(_rows([name for name, _ in pending], stacked, [None] * len(pending), head))
         pending.clear()

@@ -1,13 +1,13 @@
 r"""Pixel-domain refinement of a wrench inversion: the efficient estimator of a model frame.
 
-The per-frame inversion ([`invert_frame`][]) compares only the demodulated moiré bands
+The per-frame inversion ([`invert`][]) compares only the demodulated moiré bands
 on a coarse grid. That is what a real unit needs, but it leaves out what the carriers,
 their harmonics and the fine structure of the fringes say about the load, so its scatter
 sits above the Cramér–Rao bound ([`cramer_rao`][]). [`refine_in_pixels`][] takes its
 result and fits the full rendered frame to the observed one by weighted least squares,
 each pixel whitened by its camera noise,
 $$r_i = \frac{o_i - \mu_i(\theta)}{\sigma_i(\mu_i)},$$
-over the inversion's own ten unknowns (`Estimate.state`). With Gaussian pixel noise this
+over the inversion's own unknowns ([`LoadState`][]). With Gaussian pixel noise this
 is the maximum-likelihood estimate, and its covariance, the inverse Fisher information
 $(J^\top J)^{-1}$ at the solution, is the Cramér–Rao bound there: a scatter equal to
 that covariance shows the estimator efficient.
@@ -29,7 +29,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._conventions import WRENCH_SCALE
 from ..physics import Contact, Device, HighFidelity, noise_as_arrays, pixel_noise_variance, render_frame
-from ._inversion import _unpack, Estimate, N_UNKNOWNS, Status
+from ._state import Estimate, LoadState, N_UNKNOWNS, Status, WRENCH_COORDINATES
 
 
 class PixelFit(eqx.Module):
@@ -40,7 +40,7 @@ class PixelFit(eqx.Module):
       solution with the contact and the exposure estimated too; `sigma` its
       square-rooted diagonal.
     - `contact`: the fitted [`Contact`][]; `exposure`: the fitted exposure factor.
-    - `state`: the ten unknowns, as `Estimate.state`.
+    - `state`: the fitted [`LoadState`][], as `Estimate.state`.
     - `chi2`: the whitened residual's sum of squares per degree of freedom; about 1 when
       the renderer and the noise model describe the frame, well above where they do not.
     - `status`: an integer [`Status`][] (`CONVERGED`, `MAX_STEPS` or `NONFINITE`);
@@ -52,7 +52,7 @@ class PixelFit(eqx.Module):
     sigma: Float[Array, "*b 6"]
     contact: Contact
     exposure: Float[Array, "*b"]
-    state: Float[Array, "*b 10"]
+    state: LoadState
     chi2: Float[Array, "*b"]
     status: Int[Array, "*b"]
     steps: Int[Array, "*b"]
@@ -65,8 +65,10 @@ class PixelFit(eqx.Module):
 def _residuals(y, args, mechanics_shape) -> tuple[Float[Array, " n"], Float[Array, ""]]:
     """Whitened pixel residuals, and how many pixels carry information."""
     frame, device, noise = args
-    wrench, contact, exposure = _unpack(y)
-    predicted = render_frame(device, wrench, contact, exposure=exposure, mechanics_shape=mechanics_shape)
+    state = LoadState.from_vector(y)
+    predicted = render_frame(
+        device, state.wrench, state.contact, exposure=state.exposure, mechanics_shape=mechanics_shape
+    )
     # A pixel the camera clips tells nothing about the load (as in the Fisher information).
     unclipped = (predicted > 0) & (predicted < 1)
     whiten = jnp.where(unclipped, jax.lax.rsqrt(pixel_noise_variance(predicted, noise)), 0.0)
@@ -97,7 +99,7 @@ def _inverse_information(jacobian_t: Float[Array, "10 n"]) -> Float[Array, "10 1
 def refine_in_pixels(
     device: Device,
     frame: Float[Array, "h w"],
-    start: Estimate | Float[Array, "10"],
+    start: Estimate | LoadState,
     noise: HighFidelity | None = None,
     *,
     max_steps: int = 16,
@@ -127,7 +129,7 @@ def refine_in_pixels(
 
     - `device`: the [`Device`][] that rendered the frame.
     - `frame`: the observed frame, `(device.height, device.width)`, camera units.
-    - `start`: an [`Estimate`][] of the band inversion, or its ten unknowns (`Estimate.state`).
+    - `start`: an [`Estimate`][] of the band inversion, or a [`LoadState`][] (its `state`).
     - `noise`: the camera of a [`HighFidelity`][] model; `None` for its defaults. Its
       floats are compile-time constants: give arrays to vary it without recompiling.
     - `max_steps`: Gauss–Newton steps allowed.
@@ -142,12 +144,12 @@ def refine_in_pixels(
     contact latents nothing constrains, comes back `NONFINITE`.
     """
     state = start.state if isinstance(start, Estimate) else start
-    if state.shape != (N_UNKNOWNS,):
-        raise ValueError(f"start must hold {N_UNKNOWNS} unknowns, got shape {state.shape}")
+    if not isinstance(state, LoadState) or state.scaled_wrench.shape != (6,):
+        raise ValueError("start must be one frame's Estimate or LoadState")
     if frame.shape != (device.height, device.width):
         raise ValueError(f"frame has shape {frame.shape}, device expects {(device.height, device.width)}")
     dtype = device.p1.dtype
-    y0 = state.astype(dtype)
+    y0 = state.vector().astype(dtype)
     args = (frame.astype(dtype), device, noise_as_arrays(noise, dtype))
 
     r0, jacobian_t, _ = _linearise(y0, args, mechanics_shape)
@@ -171,17 +173,17 @@ def refine_in_pixels(
     r, jacobian_t, used = _linearise(y, args, mechanics_shape)
     covariance_y = _inverse_information(jacobian_t)
     wrench_scale = jnp.asarray(WRENCH_SCALE, dtype)
-    covariance = covariance_y[:6, :6] * wrench_scale[:, None] * wrench_scale[None, :]
-    wrench, contact, exposure = _unpack(y)
+    covariance = covariance_y[WRENCH_COORDINATES, WRENCH_COORDINATES] * wrench_scale[:, None] * wrench_scale[None, :]
+    fitted = LoadState.from_vector(y)
     finite = jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(covariance))
     status = jnp.where(solution.result == optx.RESULTS.successful, Status.CONVERGED, Status.MAX_STEPS)
     return PixelFit(
-        wrench=wrench,
+        wrench=fitted.wrench,
         covariance=covariance,
         sigma=jnp.sqrt(jnp.clip(jnp.diagonal(covariance), 0.0, None)),
-        contact=contact,
-        exposure=exposure,
-        state=y,
+        contact=fitted.contact,
+        exposure=fitted.exposure,
+        state=fitted,
         chi2=jnp.sum(r**2) / jnp.maximum(used - N_UNKNOWNS, 1.0),
         status=jnp.where(finite, status, Status.NONFINITE).astype(jnp.int32),
         steps=jnp.asarray(solution.stats["num_steps"], jnp.int32) + 1,

@@ -11,6 +11,9 @@ $x_j = (j - (w-1)/2)/\text{px\_per\_mm}$, $y_i = ((h-1)/2 - i)/\text{px\_per\_mm
 Radial distortion acts on undistorted pixel coordinates $u$ about the image centre $c$,
 normalised by the half-diagonal $R$: with $d = (u - c)/R$, the observed pixel is
 $c + R\,d\,(1 + k_1|d|^2 + k_2|d|^4)$.
+
+It is one module because blob detection, grid ordering and the fit all serve one
+calibration image, and the `Rectification` they produce is what applies the result.
 """
 
 import dataclasses

@@ -71,7 +71,7 @@ GATE_ON_THRESHOLD = 0.0004
 
 
 class TactileProcessor:
-    """`process_tactile` for [`run_pipeline`][]: one [`track_frame`][] per frame.
+    """`process_tactile` for [`run_pipeline`][]: one step of [`frame_tracker`][] per frame.
 
     Made by [`make_tactile_processor`][]. Each call returns `(wrench, covariance, status,
     message)` with `status` the lower-case [`Status`][] name (`"converged"`,
@@ -118,7 +118,7 @@ class TactileProcessor:
 
 
 def make_tactile_processor(inverter: Inverter, warmup_frame: np.ndarray | None = None) -> TactileProcessor:
-    """Adapt [`track_frame`][] to `process_tactile` of [`run_pipeline`][].
+    """Adapt a [`frame_tracker`][] step to `process_tactile` of [`run_pipeline`][].
 
     **Arguments:**
 

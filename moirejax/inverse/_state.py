@@ -1,0 +1,182 @@
+"""What an inversion estimates and returns: the unknowns of a frame ([`LoadState`][]), the
+per-frame [`Estimate`][] and its [`Status`][], and the [`Track`][] a stream carries.
+
+[`LoadState`][] is the one place that knows how the unknowns are laid out as the solvers'
+coordinate vector; everything else reads them by name.
+"""
+
+import enum
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from .._conventions import WRENCH_SCALE
+from ..physics import Contact
+
+
+# A typical indenter's contact radius (mm): the contact guess of a frame before any fit.
+TYPICAL_RADIUS = 3.5
+# How many unknowns a frame has, and where the scaled wrench sits among the solvers'
+# coordinates (`LoadState.vector`).
+N_UNKNOWNS = 10
+WRENCH_COORDINATES = slice(0, 6)
+
+
+class LoadState(eqx.Module):
+    """The unknowns of one frame: the load, where it sits, and the exposure (a batch has a
+    leading axis on every field).
+
+    - `scaled_wrench`: `[fx, fy, fz, tx, ty, tz]`, each over the paper's range of its axis
+      ([`PAPER_RANGES`][moirejax.PAPER_RANGES]), so that every axis weighs alike in a solve.
+    - `x0`, `y0`: the contact's centre on the contact surface, mm.
+    - `log_radius`: the log of the contact radius (mm).
+    - `log_exposure`: the log of the frame's exposure factor against the device's.
+
+    [`Estimate.state`][moirejax.Estimate] is one; pass it as `init` to warm-start the next
+    frame ([`Inverter.solve`][]), or build one from a known load with
+    [`LoadState.from_load`][].
+    """
+
+    scaled_wrench: Float[Array, "*b 6"]
+    x0: Float[Array, "*b"]
+    y0: Float[Array, "*b"]
+    log_radius: Float[Array, "*b"]
+    log_exposure: Float[Array, "*b"]
+
+    @classmethod
+    def at_rest(cls, x0: float = 0.0, y0: float = 0.0, radius: float = TYPICAL_RADIUS, dtype=float) -> "LoadState":
+        """No load, a contact guess at `(x0, y0)` of `radius` mm, the device's exposure."""
+        scalar = lambda v: jnp.asarray(v, dtype)  # noqa: E731
+        return cls(jnp.zeros(6, dtype), scalar(x0), scalar(y0), scalar(math.log(radius)), scalar(0.0))
+
+    @classmethod
+    def from_load(
+        cls, wrench: Float[ArrayLike, "6"], contact: Contact, exposure: float | Float[ArrayLike, ""] = 1.0, dtype=None
+    ) -> "LoadState":
+        """The state of a known load: `wrench` in N and N·m on `contact`, at `exposure`."""
+        wrench = jnp.asarray(wrench, dtype)
+        dtype = wrench.dtype
+        return cls(
+            wrench / jnp.asarray(WRENCH_SCALE, dtype),
+            jnp.asarray(contact.x0, dtype),
+            jnp.asarray(contact.y0, dtype),
+            jnp.log(jnp.asarray(contact.radius, dtype)),
+            jnp.log(jnp.asarray(exposure, dtype)),
+        )
+
+    @property
+    def wrench(self) -> Float[Array, "*b 6"]:
+        """`[fx, fy, fz, tx, ty, tz]` in N and N·m."""
+        return self.scaled_wrench * jnp.asarray(WRENCH_SCALE, self.scaled_wrench.dtype)
+
+    @property
+    def contact(self) -> Contact:
+        return Contact(x0=self.x0, y0=self.y0, radius=jnp.exp(self.log_radius))
+
+    @property
+    def exposure(self) -> Float[Array, "*b"]:
+        return jnp.exp(self.log_exposure)
+
+    def unloaded(self) -> "LoadState":
+        """This state with no load: the contact guess and exposure kept."""
+        return eqx.tree_at(lambda s: s.scaled_wrench, self, jnp.zeros_like(self.scaled_wrench))
+
+    def with_shear(self, fx: float | Float[Array, ""], fy: float | Float[Array, ""]) -> "LoadState":
+        """This state with its shear forces set, each in units of its axis' range."""
+        shear = jnp.stack([jnp.asarray(fx, self.scaled_wrench.dtype), jnp.asarray(fy, self.scaled_wrench.dtype)])
+        return eqx.tree_at(lambda s: s.scaled_wrench, self, self.scaled_wrench.at[..., :2].set(shear))
+
+    def with_contact_at(self, x0: Float[Array, ""], y0: Float[Array, ""]) -> "LoadState":
+        """This state with the contact centred at `(x0, y0)` mm."""
+        return eqx.tree_at(
+            lambda s: (s.x0, s.y0), self, (jnp.asarray(x0, self.x0.dtype), jnp.asarray(y0, self.y0.dtype))
+        )
+
+    def vector(self) -> Float[Array, "*b 10"]:
+        """The solvers' coordinates: the scaled wrench, the contact centre, the log radius and
+        the log exposure, in that order."""
+        tail = jnp.stack([self.x0, self.y0, self.log_radius, self.log_exposure], axis=-1)
+        return jnp.concatenate([self.scaled_wrench, tail], axis=-1)
+
+    @classmethod
+    def from_vector(cls, y: Float[Array, "*b 10"]) -> "LoadState":
+        """The state whose [`vector`][moirejax.LoadState.vector] is `y`."""
+        if y.shape[-1] != N_UNKNOWNS:
+            raise ValueError(f"a load state has {N_UNKNOWNS} coordinates, got shape {y.shape}")
+        return cls(y[..., WRENCH_COORDINATES], y[..., 6], y[..., 7], y[..., 8], y[..., 9])
+
+
+class Status(enum.IntEnum):
+    """Per-frame outcome of an inversion; `message` gives the human version."""
+
+    CONVERGED = 0
+    MAX_STEPS = 1
+    NONFINITE = 2
+    NO_CONTACT = 3
+    BAD_FRAME = 4
+    WRONG_SIZE = 5
+    UNREADABLE = 6
+    UNEXPLAINED = 7
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    Status.CONVERGED: "converged",
+    Status.MAX_STEPS: "solver hit its step limit; wrench is the last iterate and may be inaccurate",
+    Status.NONFINITE: "frame or solution contains NaN/inf; no wrench",
+    Status.NO_CONTACT: "no contact detected; wrench is zero",
+    Status.BAD_FRAME: (
+        "frame is black, more than 5% clipped at white (reduce the exposure), or does not show this unit's "
+        "fringes; no wrench"
+    ),
+    Status.WRONG_SIZE: "frame has the wrong size for this device; no wrench",
+    Status.UNREADABLE: "frame could not be read or decoded; no wrench",
+    Status.UNEXPLAINED: (
+        "in contact, but the model explains less than half of how the fringe phase changed, or only with a load "
+        "ten times its calibrated range; the wrench is the best fit and may be far off (a contact, unit, scene "
+        "or camera pose the model does not describe)"
+    ),
+}
+
+
+class Estimate(eqx.Module):
+    """The result of inverting one frame (or a batch, with a leading axis on every field).
+
+    - `wrench`: `[fx, fy, fz, tx, ty, tz]` in N and N·m.
+    - `covariance`: 6x6 covariance of the wrench; `sigma` its square-rooted diagonal.
+    - `contact`: the fitted [`Contact`][]; `exposure`: fitted exposure factor.
+    - `status`: an integer [`Status`][]; `steps`: solver steps; `rms`: the pixel noise level
+      that would explain the fit's residual (frame units); well above the camera noise
+      means the model does not explain the frame.
+    - `state`: the fitted [`LoadState`][], to warm-start the next frame.
+    """
+
+    wrench: Float[Array, "*b 6"]
+    covariance: Float[Array, "*b 6 6"]
+    sigma: Float[Array, "*b 6"]
+    contact: Contact
+    exposure: Float[Array, "*b"]
+    status: Int[Array, "*b"]
+    steps: Int[Array, "*b"]
+    rms: Float[Array, "*b"]
+    state: LoadState
+
+
+class Track(eqx.Module):
+    """What a stream carries from frame to frame: the last solution, the data Jacobian
+    there (against the solution's [`LoadState.vector`][moirejax.LoadState.vector]), and the
+    model's predicted change of the data from zero load there (so the next frame's residual
+    at the last solution costs no model run); `valid` is false before the first converged
+    contact; `light` is the scale of the contact light the solution was refined with (see
+    [`Inverter.solve`][]). Make the first one with [`Inverter.cold_track`][]."""
+
+    state: LoadState
+    jacobian: Float[Array, "n 10"]
+    change: Float[Array, " n"]
+    valid: Bool[Array, ""]
+    light: Float[Array, ""]
