@@ -25,7 +25,6 @@ residual variance; the covariance between the two blocks is not estimated.
 
 import dataclasses
 import importlib.resources
-import math
 from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any
@@ -37,9 +36,9 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from .._conventions import NMM_PER_NM
+from .._conventions import NMM_PER_NM, WRENCH_SCALE
 from .._fileio import DataError, read_json
-from ..inverse import Inverter
+from ..inverse import Inverter, LoadState
 from ..observe import band_model, BandModel, FringeFields
 from ..physics import Contact, Device, Elastomer, Optics
 
@@ -154,13 +153,20 @@ def with_parameters(device: Device, recipe: Recipe, theta: jax.Array) -> Device:
     return eqx.tree_at(lambda d: [_getter(n)(d) for n in recipe.free], device, values)
 
 
-def latents_from_wrench(wrench: np.ndarray) -> np.ndarray:
-    """Per-frame latent start `(x0, y0, log r, log exposure)`: the contact centred on the
-    centre of pressure that the reference wrench implies."""
+def latents_from_wrench(wrench: np.ndarray, dtype=None) -> LoadState:
+    """Every frame's [`LoadState`][moirejax.LoadState] at the start of a calibration (a leading
+    frame axis): its reference wrench, on a typical contact centred on the centre of pressure
+    that wrench implies, at the device's exposure."""
+    wrench = np.asarray(wrench)
     fz = np.maximum(wrench[:, 2], 0.05)
     x0 = np.where(wrench[:, 2] > 0.05, -wrench[:, 4] * NMM_PER_NM / fz, 0.0)
     y0 = np.where(wrench[:, 2] > 0.05, wrench[:, 3] * NMM_PER_NM / fz, 0.0)
-    return np.stack([x0, y0, np.full_like(x0, math.log(3.5)), np.zeros_like(x0)], axis=1)
+    scaled = jnp.asarray(wrench / WRENCH_SCALE, dtype)
+    rest = LoadState.at_rest(dtype=scaled.dtype)
+    full = lambda v: jnp.full(len(wrench), v, scaled.dtype)  # noqa: E731
+    return LoadState(
+        scaled, jnp.asarray(x0, scaled.dtype), jnp.asarray(y0, scaled.dtype), full(rest.log_radius), full(0.0)
+    )
 
 
 def _photometric(name: str) -> bool:
@@ -185,11 +191,12 @@ class _Problem(eqx.Module):
         inv = self.inverter
         return band_model(self.device(theta), inv.demodulator, inv.model_shape, inv.reference.reference_wavevector)
 
-    def frame_residuals(self, model: BandModel, latent, wrench, observed: FringeFields, model_reference: FringeFields):
-        contact = Contact(x0=latent[0], y0=latent[1], radius=jnp.exp(latent[2]))
-        predicted = model(wrench, contact, jnp.exp(latent[3]))
+    def frame_residuals(
+        self, model: BandModel, state: LoadState, observed: FringeFields, model_reference: FringeFields
+    ):
+        predicted = model(state.wrench, state.contact, state.exposure)
         # A weak prior keeps the radius of light contacts from running off.
-        prior = (latent[2] - math.log(3.5)) / 0.6 * 1e-3
+        prior = state.radius_misfit() * 1e-3
         return jnp.concatenate([self.inverter.band_residual(observed, predicted, model_reference), prior[None]])
 
 
@@ -207,20 +214,20 @@ def _robust_scale(r: jax.Array) -> jax.Array:
 
 @eqx.filter_jit
 def _parameter_solve(
-    problem: _Problem, theta, free: tuple[int, ...], latents, wrenches, observed, prior_mean, prior_weight, steps: int
+    problem: _Problem, theta, free: tuple[int, ...], latents: LoadState, observed, prior_mean, prior_weight, steps: int
 ):
     """Levenberg–Marquardt over the entries `free` of `theta`, the others held."""
     index = jnp.asarray(free)
 
     def data_residuals(sub, args):
-        latents, wrenches, observed = args
+        latents, observed = args
         model = problem.model(theta.at[index].set(sub))
-        per_frame = jax.vmap(problem.frame_residuals, in_axes=(None, 0, 0, 0, None))(
-            model, latents, wrenches, observed, _zero_load(model)
+        per_frame = jax.vmap(problem.frame_residuals, in_axes=(None, 0, 0, None))(
+            model, latents, observed, _zero_load(model)
         )
         return per_frame.ravel()
 
-    data = (latents, wrenches, observed)
+    data = (latents, observed)
     start = theta[index]
     noise = jax.lax.stop_gradient(_robust_scale(data_residuals(start, data)))
 
@@ -232,33 +239,47 @@ def _parameter_solve(
     sol = optx.least_squares(residuals, solver, start, args=data, max_steps=steps, throw=False)
     r = data_residuals(sol.value, data)
     J = jax.jacfwd(residuals)(sol.value, data)
-    dof = (jnp.sum(r != 0) - sol.value.size - 3 * latents.shape[0]).astype(r.dtype)
+    dof = (jnp.sum(r != 0) - sol.value.size - 3 * latents.x0.shape[0]).astype(r.dtype)
     covariance = jnp.linalg.pinv(J.T @ J, hermitian=True) * jnp.sum(r**2) / dof
     return theta.at[index].set(sol.value), covariance, jnp.sum(r**2)
 
 
 @eqx.filter_jit
-def _latent_solve(problem: _Problem, theta, latents, wrenches, observed, steps: int):
-    """Every frame's contact centre and radius, on the fringe phase; the exposure is held."""
+def _latent_solve(problem: _Problem, theta, latents: LoadState, observed, steps: int) -> LoadState:
+    """Every frame's contact centre and radius, on the fringe phase; the wrench (the reference
+    reading) and the exposure are held."""
     model = problem.model(theta)
     reference = _zero_load(model)
 
-    def one(latent, wrench, obs):
+    def contact_of(state: LoadState):
+        return state.x0, state.y0, state.log_radius
+
+    def one(state: LoadState, obs):
         def residuals(contact, args):
-            return problem.frame_residuals(model, latent.at[:3].set(contact), wrench, obs, reference)
+            return problem.frame_residuals(model, eqx.tree_at(contact_of, state, contact), obs, reference)
 
         solver = optx.LevenbergMarquardt(rtol=1e-5, atol=1e-6, linear_solver=lx.QR())
-        sol = optx.least_squares(residuals, solver, latent[:3], max_steps=steps, throw=False)
-        return latent.at[:3].set(sol.value)
+        sol = optx.least_squares(residuals, solver, contact_of(state), max_steps=steps, throw=False)
+        return eqx.tree_at(contact_of, state, sol.value)
 
-    return jax.vmap(one)(latents, wrenches, observed)
+    return jax.vmap(one)(latents, observed)
 
 
 @dataclasses.dataclass
 class CalibrationResult:
+    """What [`fit_physical_parameters`][] found.
+
+    - `device`: the fitted [`Device`][].
+    - `uncertainty`: the 1-sigma uncertainty of each free parameter, in its own units.
+    - `latents`: every frame's [`LoadState`][moirejax.LoadState] (a leading frame axis): its
+      reference wrench, and the contact centre and radius fitted to its fringe phase.
+    - `history`: each round's phase and photometric costs.
+    - `inverter`: the [`Inverter`][] of the nominal device the fit started from.
+    """
+
     device: Device
     uncertainty: dict[str, float]
-    latents: np.ndarray
+    latents: LoadState
     history: list[dict]
     inverter: Inverter
 
@@ -292,8 +313,7 @@ def fit_physical_parameters(
     inverter = Inverter(nominal, reference=reference)
     dtype = np.asarray(inverter.device.p1).dtype
     observed = jax.lax.map(inverter.observe, jnp.asarray(frames, dtype=dtype))
-    wrenches_j = jnp.asarray(wrenches, dtype=dtype)
-    latents = jnp.asarray(latents_from_wrench(np.asarray(wrenches)), dtype=dtype)
+    latents = latents_from_wrench(np.asarray(wrenches), dtype)
     # The mechanics and geometry are fitted to the fringe phase, which a unit's photometry
     # cannot move; the photometric parameters to the whole residual, the others held.
     phase = _Problem(inverter.phase_only(), recipe.free, recipe.log)
@@ -315,7 +335,7 @@ def fit_physical_parameters(
     history = []
     covariance = np.zeros((theta.size, theta.size))
     bar = tqdm(total=recipe.rounds * (len(stages) + 1) + 1, desc="calibrate", disable=not progress)
-    latents = _latent_solve(phase, theta, latents, wrenches_j, observed, recipe.latent_steps)
+    latents = _latent_solve(phase, theta, latents, observed, recipe.latent_steps)
     bar.update()
     for round_ in range(recipe.rounds):
         subset = np.sort(rng.choice(n, size=min(n, recipe.parameter_frames), replace=False))
@@ -326,8 +346,7 @@ def fit_physical_parameters(
                 problem,
                 theta,
                 free,
-                latents[subset],
-                wrenches_j[subset],
+                jax.tree_util.tree_map(lambda a, s=subset: a[s], latents),
                 observed_subset,
                 prior_mean,
                 prior_weight,
@@ -336,7 +355,7 @@ def fit_physical_parameters(
             covariance[np.ix_(free, free)] = np.asarray(block)
             costs[f"{name}_cost"] = float(cost)
             bar.update()
-        latents = _latent_solve(phase, theta, latents, wrenches_j, observed, recipe.latent_steps)
+        latents = _latent_solve(phase, theta, latents, observed, recipe.latent_steps)
         bar.update()
         history.append({"round": round_, **costs})
         bar.set_postfix({k: f"{v:.3g}" for k, v in costs.items()})
@@ -349,5 +368,5 @@ def fit_physical_parameters(
         name: float(s * float(v)) if name in recipe.log else float(s) for name, s, v in zip(recipe.free, sd, values)
     }
     return CalibrationResult(
-        device=device, uncertainty=uncertainty, latents=np.asarray(latents), history=history, inverter=inverter
+        device=device, uncertainty=uncertainty, latents=jax.device_get(latents), history=history, inverter=inverter
     )

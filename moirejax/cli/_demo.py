@@ -46,7 +46,7 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     )
     plot_design_maps(out_dir / "design_maps.png")
 
-    n_cal, n_test = (32, 12) if smoke else (120, 40)
+    n_cal, n_test = (24, 8) if smoke else (120, 40)
     nominal = preset("mid")
     save_device(out_dir / "mid.json", nominal)
     print(
@@ -69,7 +69,7 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     heldout = Dataset(out_dir / "heldout")
     device, _ = load_calibrated(out_dir / "fit.json")
     inverter = Inverter(device, reference=dataset_reference(heldout))
-    frames = [heldout.frame(i) for i in range(min(4 if smoke else 12, len(heldout)))]
+    frames = [heldout.frame(i) for i in range(min(3 if smoke else 12, len(heldout)))]
     invert(inverter, frames[:1])
     t0 = time.perf_counter()
     invert(inverter, frames)

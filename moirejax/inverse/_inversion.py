@@ -38,11 +38,12 @@ pixel noise put there, somewhere on the frame ([`Inverter.phase_change`][]). Exp
 illumination and the fringes' contrast do not move the phase, and a load the model
 explains badly still moves it, so such a load is never reported as no contact.
 
-`Inverter` is one module because the residual, its two solvers (Levenberg–Marquardt for
-cold frames, frozen-Jacobian iterations for streams), the covariance and the status all read
-the same `Inverter` fields and the same layout of the residual vector (the amplitude, phase
-and brightness blocks, then the priors); split apart, each piece would re-derive that
-layout. What an inversion returns is in `_state.py`, the entry points in `_invert.py`.
+The package's modules: the problem (`Inverter`: the residual, its priors, the frame
+screen and the contact test) here; its two solvers in `_solvers.py`; the covariance and
+status of a solution in `_estimate.py`; what an inversion returns in `_state.py`; the entry
+points in `_invert.py`. This module stays long because the residual's pieces (the band
+residual, the priors, the zero-load residual, the phase-change statistic, the cold guess)
+all read the same `Inverter` fields and the same layout of the residual vector.
 """
 
 import math
@@ -52,7 +53,6 @@ import warnings
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Real
@@ -72,15 +72,16 @@ from ..observe import (
     white_noise_variance,
 )
 from ..physics import Device
-from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track, TYPICAL_RADIUS, WRENCH_COORDINATES
+from ._estimate import finish
+from ._solvers import best_start, chord, solve_cold
+from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track, TYPICAL_RADIUS
 
 
-# Prior widths: centre-of-pressure offset from the contact centre (N*mm of moment), and
-# log contact radius around 3.5 mm. A pressure not centred on its contact is a tilted
+# Prior width of the centre-of-pressure offset from the contact centre (N*mm of moment); the
+# radius has the prior of `LoadState.radius_misfit`. A pressure not centred on its contact is a tilted
 # indenter; along line gratings it moves the fringes almost as the shear along the lines
 # does (docs/physics.md), and a wider prior trades one for the other.
 _TILT_PRIOR_NMM = 0.25
-_RADIUS_PRIOR = (math.log(TYPICAL_RADIUS), 0.6)
 # Width of the wrench prior, in units of WRENCH_SCALE: a load is a priori about as large as
 # the calibrated range. Data that see an axis override it; data that do not (the shear
 # across a line grating's lines sees the fringes only through second-order effects) leave
@@ -89,22 +90,10 @@ _WRENCH_PRIOR = 1.0
 # Width of the log-exposure prior. The fringe phase does not see the exposure at all: without
 # a prior a phase-only refinement can drift it by rounding alone until the model overflows.
 _EXPOSURE_PRIOR = 1.0
-# Prior residuals: the tilt (2), the radius (1), the wrench (6) and the exposure (1).
-N_PRIORS = 10
 # Radius of the cuts around the reference grating's carrier (and its sidebands) in a carrier
 # band, over |K|: that carrier lies |K| from the upper grating's, and its glow-modulated
 # spread must stay inside the cut while the upper grating's own spectrum stays outside.
 _CARRIER_NOTCH = 0.6
-# A cold solve whose cost is above this fraction of the zero-load cost tries more starts.
-_UNEXPLAINED = 0.004
-# A contact frame whose fringe phase residual, above the pixel noise, keeps more than this
-# share of its change from the reference (also above the noise) is one the model does not
-# explain.
-_UNEXPLAINED_SHARE = 0.5
-# A fit needing more than this many calibrated ranges on any axis (12 N of normal force) is
-# not a load the model describes either: a foreign scene, another unit, a moved camera or an
-# occlusion is "explained" by an absurd load as readily as by a small one.
-_IMPLAUSIBLE_RANGES = 10.0
 # Window (mm, Gaussian sd) over which the phase change is averaged to detect a contact.
 _CONTACT_WINDOW = 2.0
 # The least agreement of a frame's fringe phase with the reference's over the field (the
@@ -438,7 +427,7 @@ class Inverter(eqx.Module):
             jnp.stack([fz * state.y0 - wrench[3] * NMM_PER_NM, fz * state.x0 + wrench[4] * NMM_PER_NM])
             / _TILT_PRIOR_NMM
         )
-        radius = (state.log_radius - _RADIUS_PRIOR[0]) / _RADIUS_PRIOR[1]
+        radius = state.radius_misfit()
         exposure = state.log_exposure / _EXPOSURE_PRIOR
         # Priors are in units of the data noise so their weight does not depend on it.
         return jnp.concatenate([tilt, radius[None], state.scaled_wrench / _WRENCH_PRIOR, exposure[None]]) * noise
@@ -616,242 +605,8 @@ class Inverter(eqx.Module):
     def _prior_jacobian(self, y, noise):
         return jax.jacfwd(self._prior_residuals)(y, noise)
 
-    def _chord(self, y, r, jacobian, args):
-        r"""Gauss–Newton iterations from the last frame's Jacobian, kept current by Broyden updates.
-
-        At camera rate consecutive frames are close, so the data Jacobian barely changes;
-        reusing it makes each iteration one model evaluation instead of eleven. Each step
-        $\Delta y$ and the residual change $\Delta r$ it caused (exact: same frame, same
-        model) update the Jacobian along that direction,
-        $J \leftarrow J + (\Delta r - J\Delta y)\Delta y^\top / \Delta y^\top\Delta y$,
-        so it follows the load along the stream instead of going stale. `r` is the
-        residual at `y` (a stream knows it from the last frame's prediction). The iterations
-        stop when the next step would move every unknown by less than `chord_tolerance`
-        of its standard error; that last step is returned as `pending`, for the estimate to
-        take without a model run to check it (its error is the Jacobian's relative error
-        times the step, a small fraction of a standard error). The frame is handed to
-        Levenberg–Marquardt if that has not happened after `chord_steps` iterations or if
-        the cost rises. Returns `(y, r, jacobian, steps, accepted, pending)`, `r` and
-        `jacobian` at `y`.
-        """
-        observed, noise = args
-
-        def step(y, r, jacobian):
-            prior_jac = self._prior_jacobian(y, noise)
-            jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
-            gradient = jacobian.T @ r[:-N_PRIORS] + prior_jac.T @ r[-N_PRIORS:]
-            inverse = jnp.linalg.pinv(jtj, hermitian=True)
-            dy = -inverse @ gradient
-            # Steps in units of each unknown's standard error at this noise level, over the
-            # unknowns the data or the priors inform: on the fringe phase alone the exposure
-            # is not seen at all, has no standard error, and takes no step.
-            information = jnp.diagonal(jtj)
-            informed = information > 1e-9 * jnp.max(information)
-            sigma = noise * jnp.sqrt(jnp.clip(jnp.diagonal(inverse), 1e-30, None))
-            return dy, jnp.max(jnp.where(informed, jnp.abs(dy) / sigma, 0.0))
-
-        cost0 = jnp.sum(r**2)
-        dy, size = step(y, r, jacobian)
-
-        def cond(carry):
-            *_, size, k, ok = carry
-            return ok & (size > self.chord_tolerance) & (k < self.chord_steps)
-
-        def body(carry):
-            y, r, jacobian, dy, size, k, _ = carry
-            y_new = y + dy
-            r_new = self.residuals(y_new, args)
-            # Below ~1e-4 of an axis' range the residual change is rounding, not secant.
-            secant = jnp.max(jnp.abs(dy)) > 1e-4
-            mismatch = (r_new - r)[:-N_PRIORS] - jacobian @ dy
-            update = jnp.outer(mismatch, dy) / jnp.maximum(jnp.sum(dy**2), 1e-30)
-            jacobian = jnp.where(secant & jnp.all(jnp.isfinite(update)), jacobian + update, jacobian)
-            dy_new, size_new = step(y_new, r_new, jacobian)
-            # A rising cost or a growing step means the Jacobian is too far from the truth:
-            # give the frame to Levenberg–Marquardt. (Single precision resolves the cost to
-            # about 1e-6 of itself, a step of ~0.1 standard error, hence the slack.)
-            shrinking = (size_new < size) | (size_new <= self.chord_tolerance)
-            ok = (jnp.sum(r_new**2) <= cost0 * (1 + 1e-5)) & shrinking & jnp.all(jnp.isfinite(r_new))
-            return y_new, r_new, jacobian, dy_new, size_new, k + 1, ok
-
-        init = (y, r, jacobian, dy, size, jnp.asarray(0, jnp.int32), jnp.all(jnp.isfinite(r)))
-        y, r, jacobian, dy, size, steps, ok = jax.lax.while_loop(cond, body, init)
-        accepted = ok & (size <= self.chord_tolerance)
-        return y, r, jacobian, steps, accepted, jnp.where(accepted, dy, 0.0)
-
     def _data_jacobian(self, y, observed):
         return jax.jacfwd(self._data_residuals)(y, observed)
-
-    def _levenberg_marquardt(self, y0, args, *, more_starts: bool | Bool[Array, ""] = True):
-        """Levenberg–Marquardt from `y0`, then again from its solution with the shear
-        forces zeroed; the lower cost wins.
-
-        From a cold start the contact and normal load are wrong at first, and the shear can
-        absorb part of that error and settle in a wrong basin (on one unit's held-out
-        loads, 1 frame in 98 ended with Fy 0.18 N off and 3.7x the residual). Once contact
-        and normal load are right, a second solve with no shear finds the right basin; when
-        the first solve was already right it converges back in a few steps.
-
-        When neither converges (a strong wrong basin: a light, strongly sheared press whose
-        brightness centroid misplaces the contact by 1.7 mm ended at 300x the right cost),
-        or when the better one leaves more than `_UNEXPLAINED` of the zero-load residual
-        unexplained, six more starts in turn: the contact where the fringes changed most
-        ([`Inverter.fringe_change_centre`][]), the contact halfway to the centre, and each
-        shear direction at half its range. The second test catches a wrong basin the solver
-        calls converged: on 200 mixed noise-free and noisy loads, correct fits left at most
-        0.14% unexplained and two wrong ones (Fx 116% and Fy 35% of range off) 1.3-1.8%.
-        A faint contact in noise also leaves much unexplained and pays for the extra starts.
-
-        `more_starts=False` (streams) stops after the first two starts. On a `high`-fidelity
-        recording of an uncalibrated unit with illumination drift, right fits leave 0.3-3%
-        unexplained (6% without contact) and faint presses often end at `max_steps`, so the
-        six starts ran at most cold solves and took them from 0.7 to 2-3.5 s, which a live
-        stream pays in dropped frames at each contact onset. A stream's cold start is usually
-        a light press at contact onset, the stream follows the load from there, and a frame
-        that did not converge is retried cold on the next frame.
-        """
-        solver = optx.LevenbergMarquardt(rtol=self.rtol, atol=self.atol, linear_solver=lx.QR())
-        zero_cost = jnp.sum(self._zero_residuals(args[0]) ** 2)
-        fringe_centre = self.fringe_change_centre(args[0])
-        first = LoadState.from_vector(y0)
-        fallbacks = jnp.stack(
-            [
-                first.with_shear(0.0, 0.0).with_contact_at(fringe_centre[0], fringe_centre[1]).vector(),
-                first.with_contact_at(0.5 * first.x0, 0.5 * first.y0).vector(),
-                first.with_shear(0.5, first.scaled_wrench[1]).vector(),
-                first.with_shear(-0.5, first.scaled_wrench[1]).vector(),
-                first.with_shear(first.scaled_wrench[0], 0.5).vector(),
-                first.with_shear(first.scaled_wrench[0], -0.5).vector(),
-            ]
-        )
-
-        # One solver inside a loop over the starts, not one per start: each traced solve
-        # is a copy of the whole model in the compiled program, and compilation was most of
-        # a first frame's cost (35 s with three copies).
-        def cond(carry):
-            k, _, _, _, _, more = carry
-            return (k < 2) | (more & (k < 2 + fallbacks.shape[0]))
-
-        def body(carry):
-            k, y, cost, result, steps, more = carry
-            no_shear = LoadState.from_vector(y).with_shear(0.0, 0.0).vector()
-            start = jnp.where(k == 0, y0, jnp.where(k == 1, no_shear, fallbacks[jnp.clip(k - 2, 0, None)]))
-            sol = optx.least_squares(self.residuals, solver, start, args=args, max_steps=self.max_steps, throw=False)
-            new_cost = jnp.sum(self.residuals(sol.value, args) ** 2)
-            better = (k == 0) | (jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf) < cost)
-            y = jnp.where(better, sol.value, y)
-            cost = jnp.where(better, jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf), cost)
-            result = optx.RESULTS.where(better, sol.result, result)
-            steps = steps + jnp.asarray(sol.stats["num_steps"], jnp.int32)
-            # After the first two starts, the fallbacks run only if neither converged or
-            # the better one explains the frame poorly.
-            poor = cost > _UNEXPLAINED * zero_cost
-            more = jnp.where(k == 1, more_starts & ((result != optx.RESULTS.successful) | poor), more)
-            return k + 1, y, cost, result, steps, more
-
-        init = (
-            jnp.asarray(0, jnp.int32),
-            y0,
-            jnp.asarray(jnp.inf, y0.dtype),
-            optx.RESULTS.successful,
-            jnp.asarray(0, jnp.int32),
-            jnp.asarray(False),
-        )
-        _, y, _, result, steps, _ = jax.lax.while_loop(cond, body, init)
-        return y, self.residuals(y, args), self._data_jacobian(y, args[0]), steps, result
-
-    def _best_start(self, candidates, residuals):
-        """The candidate with the lowest cost, and its residual."""
-        costs = jnp.stack([jnp.sum(r**2) for r in residuals])
-        costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
-        best = jnp.argmin(costs)
-        return jnp.stack(candidates)[best], jnp.stack(residuals)[best]
-
-    def _finish(self, screen, observed, r_zero, noise, y, r, jacobian, steps, result, start, pending=None):
-        """Covariance, contact test and status of a solution `y` with residual `r`; the
-        estimate is at `y + pending` (see [`Inverter._chord`][]), the track stays at `y`,
-        where its prediction is known."""
-        dtype = y.dtype
-        r_data = r[:-N_PRIORS]
-        # The priors were weighed against the pixel noise. Where the model misses part of
-        # the frame (a unit or renderer it does not describe exactly), the residual is larger
-        # than that noise, the data say less than the pixel noise suggests, and the priors
-        # must weigh as much against the residual's actual size: one Gauss-Newton step with
-        # the priors at that weight, from the solution and its Jacobian, moves the unknowns
-        # the data do not see back towards their priors. On a frame the model explains to the
-        # noise level the weight is unchanged and the step is the solver's own tolerance.
-        # The residual's size where the unknowns' signal lives (each datum weighed by how much
-        # the unknowns move it): a misfit near the contact is diluted by the far field in a
-        # plain mean.
-        signal = jnp.sum(jacobian**2, axis=1)
-        misfit = jnp.sqrt(jnp.sum(r_data**2 * signal) / jnp.maximum(jnp.sum(signal), 1e-30))
-        prior_weight = jnp.maximum(noise, misfit)
-        prior_jac = self._prior_jacobian(y, prior_weight)
-        jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
-        inverse = jnp.linalg.pinv(jtj, hermitian=True)
-        reweigh = -inverse @ (jacobian.T @ r_data + prior_jac.T @ self._prior_residuals(y, prior_weight))
-        pending = jnp.where(jnp.all(jnp.isfinite(reweigh)), reweigh, 0.0) + (0.0 if pending is None else pending)
-        # Sandwich covariance for correlated noise: the estimate moves by A e for a data
-        # noise e, A = (J^T J)^-1 J_data^T; E[e e^T] comes from the stored unit-noise draws.
-        # The pixel variance is what makes the residual's expected size match its actual one.
-        # Every product ordered with samples leading: (samples, n) @ (n, unknowns) first, no
-        # transposes; XLA's CPU dots are several times slower the other way round.
-        moved = (self.noise_residuals @ jacobian) @ inverse  # (samples, unknowns), A e per draw
-        samples = self.noise_residuals.shape[0]
-        unit_cov = moved.T @ moved / samples
-        explained = jnp.sum(moved * (moved @ (jacobian.T @ jacobian))) / samples
-        unit_rss = self.noise_power - explained
-        variance = jnp.sum(r_data**2) / jnp.maximum(unit_rss, 1e-30)
-        # The priors act as observations with the residual's noise level: their share of the
-        # uncertainty is what keeps an axis the data do not see at about its prior width.
-        prior_part = inverse @ (prior_jac.T @ prior_jac) @ inverse * prior_weight**2
-        cov_y = unit_cov * variance + prior_part
-        scale = jnp.asarray(WRENCH_SCALE, dtype)
-        covariance = cov_y[WRENCH_COORDINATES, WRENCH_COORDINATES] * scale[:, None] * scale[None, :]
-        y_out = y + pending
-        solution = LoadState.from_vector(y_out)
-        wrench, contact, exposure = solution.wrench, solution.contact, solution.exposure
-        # Contact from the data: has the fringe phase moved beyond its noise somewhere?
-        in_contact = self._phase_change_statistic(observed, screen) > self.contact_threshold
-        status = _status(result, screen, in_contact, y)
-        # How much of the fringe phase's change from the reference the fit leaves, both above
-        # what the frame's and the reference's pixel noise alone would leave there: judged on
-        # the phase, which the wrench rests on, whatever else the residual holds.
-        size = self.fringe_weight.size
-        noise_cost = (screen.noise_variance + self.reference_noise) * jnp.sum(self.unit_phase_noise)
-        left = jnp.sum(r_data[size : 2 * size] ** 2) - noise_cost
-        change = jnp.sum(r_zero[size : 2 * size] ** 2) - noise_cost
-        implausible = jnp.any(jnp.abs(solution.scaled_wrench) > _IMPLAUSIBLE_RANGES)
-        unexplained = (left > _UNEXPLAINED_SHARE * jnp.maximum(change, 0.0)) | implausible
-        # An unexplained frame keeps its wrench and covariance, and a converged one still
-        # seeds the next frame of a stream: the flag is for the user, not the solver.
-        ok = (status == Status.CONVERGED) | (status == Status.MAX_STEPS)
-        converged = status == Status.CONVERGED
-        status = jnp.where(ok & unexplained, Status.UNEXPLAINED, status).astype(status.dtype)
-        nan6 = jnp.full(6, jnp.nan, dtype)
-        wrench = jnp.where(ok, wrench, jnp.where(status == Status.NO_CONTACT, jnp.zeros(6, dtype), nan6))
-        covariance = jnp.where(ok | (status == Status.NO_CONTACT), covariance, jnp.full((6, 6), jnp.nan, dtype))
-        sigma = jnp.sqrt(jnp.clip(jnp.diagonal(covariance), 0.0, None))
-        estimate = Estimate(
-            wrench=wrench,
-            covariance=covariance,
-            sigma=sigma,
-            contact=contact,
-            exposure=exposure,
-            status=status,
-            steps=steps,
-            rms=jnp.sqrt(variance),
-            state=LoadState.from_vector(jnp.where(ok, y_out, start)),
-        )
-        # Only a converged contact is a good linearisation point for the next frame.
-        track = Track(
-            state=LoadState.from_vector(jnp.where(ok, y, jnp.nan)),
-            jacobian=jacobian,
-            change=r_zero - r_data,
-            valid=converged,
-            light=jnp.ones((), dtype),
-        )
-        return estimate, track
 
     def phase_only(self, light: float | Float[Array, ""] = 1.0) -> "Inverter":
         """This inverter with a residual of the fringe phase alone (the weights of the
@@ -893,34 +648,6 @@ class Inverter(eqx.Module):
         scaled by `light`, or this inverter itself when it fits the brightness."""
         return self if self.brightness else self.phase_only(light)
 
-    def _solve_cold(self, y0, args, *, more_starts: bool | Bool[Array, ""]):
-        """Levenberg–Marquardt on the full residual from `y0` (the brightness places a cold
-        start in the right basin on a unit that glows), then, unless the inverter fits the
-        brightness, two refinements on the fringe phase alone: with the contact light the
-        device describes, and with none. Returns the better refinement as
-        `(y, r, jacobian, steps, result, light)`, `r` and `jacobian` those of
-        `self._fit_for(light)`."""
-        y, r, jacobian, steps, result = self._levenberg_marquardt(y0, args, more_starts=more_starts)
-        if self.brightness:
-            return y, r, jacobian, steps, result, jnp.ones((), y.dtype)
-        zero_cost = jnp.sum(self.phase_only(1.0)._zero_residuals(args[0]) ** 2)
-
-        def refine(more, light):
-            # The device's light first; the second refinement (no light) tries further
-            # starts only when the first leaves the frame poorly explained: a unit that
-            # glows as the device says is done in a few steps, one that does not needs them.
-            y_, r_, jacobian_, steps_, result_ = self.phase_only(light)._levenberg_marquardt(y, args, more_starts=more)
-            poor = jnp.sum(r_[:-N_PRIORS] ** 2) > _UNEXPLAINED * zero_cost
-            return more_starts & poor, (y_, r_, jacobian_, steps_, result_)
-
-        # One traced solver run twice (light as the device says, then none), not two copies.
-        lights = jnp.asarray([1.0, 0.0], y.dtype)
-        _, (ys, rs, jacobians, refine_steps, results) = jax.lax.scan(refine, jnp.asarray(False), lights)
-        costs = jnp.sum(rs[:, :-N_PRIORS] ** 2, axis=1)
-        best = jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))
-        y, r, jacobian, result = jax.tree_util.tree_map(lambda a: a[best], (ys, rs, jacobians, results))
-        return y, r, jacobian, steps + jnp.sum(refine_steps).astype(steps.dtype), result, lights[best]
-
     def track(self, frame: Real[Array, "h w"], track: "Track") -> tuple[Estimate, "Track"]:
         """Invert one frame of a stream; pure and jit-able (see [`frame_tracker`][]).
 
@@ -930,7 +657,7 @@ class Inverter(eqx.Module):
         fresh Jacobian. If neither converges, or without a valid track, the cold solve of
         [`Inverter.solve`][] from the best of the last solution, the iterations' end and
         the cold guess (its first two starts only, so that a stream does not stall; see
-        `Inverter._levenberg_marquardt`). Returns the estimate and the track for the next frame.
+        `_solvers.levenberg_marquardt`). Returns the estimate and the track for the next frame.
         """
         screen, observed, _, noise = self._prepare(frame)
         args = (observed, noise)
@@ -948,7 +675,7 @@ class Inverter(eqx.Module):
             lambda: jnp.concatenate([r_zero - track.change, fit._prior_residuals(warm, noise)]),
             lambda: fit.residuals(cold, args),
         )
-        y_chord, r_chord, j_chord, chord_steps, accepted, pending = fit._chord(warm, r_warm, track.jacobian, args)
+        y_chord, r_chord, j_chord, chord_steps, accepted, pending = chord(fit, warm, r_warm, track.jacobian, args)
         accepted = usable & accepted
 
         def fast(_):
@@ -958,12 +685,12 @@ class Inverter(eqx.Module):
             # Second tier: the same iterations with a Jacobian evaluated afresh at the best
             # point so far (about one Levenberg–Marquardt step's cost).
             chord_ok = jnp.all(jnp.isfinite(y_chord)) & usable
-            start, r_start = fit._best_start(
+            start, r_start = best_start(
                 [cold, warm, jnp.where(chord_ok, y_chord, cold)],
                 [fit.residuals(cold, args), r_warm, jnp.where(chord_ok, r_chord, jnp.inf)],
             )
-            y_fresh, r_fresh, j_fresh, fresh_steps, fresh_ok, fresh_pending = fit._chord(
-                start, r_start, fit._data_jacobian(start, observed), args
+            y_fresh, r_fresh, j_fresh, fresh_steps, fresh_ok, fresh_pending = chord(
+                fit, start, r_start, fit._data_jacobian(start, observed), args
             )
 
             def refreshed(_):
@@ -975,16 +702,16 @@ class Inverter(eqx.Module):
                 # sees it, between the cold guess and the last solution: after a jump to an
                 # unrelated load, iterations on the phase alone from the last solution end
                 # in its basin, and the brightness points to the new contact.
-                start, _ = self._best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
-                y, r, jacobian, steps, result, light = self._solve_cold(start, args, more_starts=False)
+                start, _ = best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
+                y, r, jacobian, steps, result, light = solve_cold(self, start, args, more_starts=False)
                 return y, r, jacobian, steps, result, jnp.zeros_like(y), light
 
             return jax.lax.cond(usable & fresh_ok, refreshed, cold_solve, None)
 
         y, r, jacobian, steps, result, pending, light = jax.lax.cond(accepted, fast, slow, None)
         fit = self._fit_for(light)
-        estimate, next_track = fit._finish(
-            screen, observed, r_zero, noise, y, r, jacobian, steps, result, warm, pending
+        estimate, next_track = finish(
+            fit, screen, observed, r_zero, noise, y, r, jacobian, steps, result, warm, pending
         )
         return estimate, eqx.tree_at(lambda t: t.light, next_track, light)
 
@@ -1015,14 +742,14 @@ class Inverter(eqx.Module):
             start = init.vector().astype(cold.dtype)
             usable = jnp.all(jnp.isfinite(start))
             warm = jnp.where(usable, start, cold)
-            y0, _ = self._best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
+            y0, _ = best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
             # A warm start that wins is in the right basin already: the further starts are
             # for cold guesses (on a unit the model does not describe exactly, every frame
             # leaves enough unexplained to try them all).
             more_starts = ~(usable & jnp.all(y0 == warm))
 
         def solved(_):
-            return self._solve_cold(y0, args, more_starts=more_starts)
+            return solve_cold(self, y0, args, more_starts=more_starts)
 
         def skipped(_):
             # No load to find: the unknowns stay at zero load, where the Jacobian still gives
@@ -1040,7 +767,7 @@ class Inverter(eqx.Module):
         )
         y, r, jacobian, steps, result, light = jax.lax.cond(needed, solved, skipped, None)
         fit = self._fit_for(light)
-        return fit._finish(screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, y0)[0]
+        return finish(fit, screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, y0)[0]
 
     def chord_batch(self, frames: Real[Array, "b h w"], track: "Track") -> tuple[Estimate, Bool[Array, " b"], "Track"]:
         """Frozen-Jacobian iterations for a batch of nearby frames from one shared `track`.
@@ -1058,9 +785,9 @@ class Inverter(eqx.Module):
             r_zero = fit._zero_residuals(observed)
             last = track.state.vector()
             r_start = jnp.concatenate([r_zero - track.change, fit._prior_residuals(last, noise)])
-            y, r, jacobian, steps, accepted, pending = fit._chord(last, r_start, track.jacobian, args)
-            estimate, frame_track = fit._finish(
-                screen, observed, r_zero, noise, y, r, jacobian, steps, optx.RESULTS.successful, y, pending
+            y, r, jacobian, steps, accepted, pending = chord(fit, last, r_start, track.jacobian, args)
+            estimate, frame_track = finish(
+                fit, screen, observed, r_zero, noise, y, r, jacobian, steps, optx.RESULTS.successful, y, pending
             )
             frame_track = eqx.tree_at(lambda t: t.light, frame_track, track.light)
             # A frame the chord settles is done whatever its verdict; a frame that needs no
@@ -1110,12 +837,3 @@ def _median(values: Float[Array, " n"]) -> Float[Array, ""]:
     n = values.shape[0]
     upper = jnp.partition(values, n // 2)
     return upper[n // 2] if n % 2 else 0.5 * (jnp.max(upper[: n // 2]) + upper[n // 2])
-
-
-def _status(result, screen: _Screen, in_contact, y):
-    solution_finite = jnp.all(jnp.isfinite(y))
-    status = jnp.where(result == optx.RESULTS.successful, Status.CONVERGED, Status.MAX_STEPS)
-    status = jnp.where(in_contact, status, Status.NO_CONTACT)
-    status = jnp.where(screen.refused, Status.BAD_FRAME, status)
-    status = jnp.where(screen.finite & solution_finite, status, Status.NONFINITE)
-    return status.astype(jnp.int32)

@@ -16,11 +16,15 @@ from .._conventions import WRENCH_SCALE
 from ..physics import Contact
 
 
-# A typical indenter's contact radius (mm): the contact guess of a frame before any fit.
+# A typical indenter's contact radius (mm): the contact guess of a frame before any fit, and
+# the centre of the prior on the radius, whose width is RADIUS_PRIOR_WIDTH in log radius.
 TYPICAL_RADIUS = 3.5
+RADIUS_PRIOR_WIDTH = 0.6
 # How many unknowns a frame has, and where the scaled wrench sits among the solvers'
 # coordinates (`LoadState.vector`).
 N_UNKNOWNS = 10
+# The problem's prior residuals (`Inverter`): the tilt (2), the radius (1), the wrench (6) and the exposure (1).
+N_PRIORS = 10
 WRENCH_COORDINATES = slice(0, 6)
 
 
@@ -78,6 +82,11 @@ class LoadState(eqx.Module):
     @property
     def exposure(self) -> Float[Array, "*b"]:
         return jnp.exp(self.log_exposure)
+
+    def radius_misfit(self) -> Float[Array, "*b"]:
+        """How far the contact radius is from a typical indenter's, in widths of its prior:
+        at light load the fringes barely see the radius, and this keeps it from running off."""
+        return (self.log_radius - math.log(TYPICAL_RADIUS)) / RADIUS_PRIOR_WIDTH
 
     def unloaded(self) -> "LoadState":
         """This state with no load: the contact guess and exposure kept."""

@@ -1,0 +1,120 @@
+"""From a solution of the band inversion to an [`Estimate`][]: the covariance of the wrench, the
+contact test, the status, and the [`Track`][] a stream continues from."""
+
+from typing import TYPE_CHECKING
+
+import jax.numpy as jnp
+import optimistix as optx
+
+from .._conventions import WRENCH_SCALE
+from ._state import Estimate, LoadState, N_PRIORS, Status, Track, WRENCH_COORDINATES
+
+
+if TYPE_CHECKING:
+    from ._inversion import _Screen, Inverter
+
+
+# A contact frame whose fringe phase residual, above the pixel noise, keeps more than this
+# share of its change from the reference (also above the noise) is one the model does not
+# explain.
+_UNEXPLAINED_SHARE = 0.5
+# A fit needing more than this many calibrated ranges on any axis (12 N of normal force) is
+# not a load the model describes either: a foreign scene, another unit, a moved camera or an
+# occlusion is "explained" by an absurd load as readily as by a small one.
+_IMPLAUSIBLE_RANGES = 10.0
+
+
+def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian, steps, result, start, pending=None):
+    """Covariance, contact test and status of a solution `y` with residual `r`; the
+    estimate is at `y + pending` (see `_solvers.chord`), the track stays at `y`,
+    where its prediction is known."""
+    dtype = y.dtype
+    r_data = r[:-N_PRIORS]
+    # The priors were weighed against the pixel noise. Where the model misses part of
+    # the frame (a unit or renderer it does not describe exactly), the residual is larger
+    # than that noise, the data say less than the pixel noise suggests, and the priors
+    # must weigh as much against the residual's actual size: one Gauss-Newton step with
+    # the priors at that weight, from the solution and its Jacobian, moves the unknowns
+    # the data do not see back towards their priors. On a frame the model explains to the
+    # noise level the weight is unchanged and the step is the solver's own tolerance.
+    # The residual's size where the unknowns' signal lives (each datum weighed by how much
+    # the unknowns move it): a misfit near the contact is diluted by the far field in a
+    # plain mean.
+    signal = jnp.sum(jacobian**2, axis=1)
+    misfit = jnp.sqrt(jnp.sum(r_data**2 * signal) / jnp.maximum(jnp.sum(signal), 1e-30))
+    prior_weight = jnp.maximum(noise, misfit)
+    prior_jac = problem._prior_jacobian(y, prior_weight)
+    jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
+    inverse = jnp.linalg.pinv(jtj, hermitian=True)
+    reweigh = -inverse @ (jacobian.T @ r_data + prior_jac.T @ problem._prior_residuals(y, prior_weight))
+    pending = jnp.where(jnp.all(jnp.isfinite(reweigh)), reweigh, 0.0) + (0.0 if pending is None else pending)
+    # Sandwich covariance for correlated noise: the estimate moves by A e for a data
+    # noise e, A = (J^T J)^-1 J_data^T; E[e e^T] comes from the stored unit-noise draws.
+    # The pixel variance is what makes the residual's expected size match its actual one.
+    # Every product ordered with samples leading: (samples, n) @ (n, unknowns) first, no
+    # transposes; XLA's CPU dots are several times slower the other way round.
+    moved = (problem.noise_residuals @ jacobian) @ inverse  # (samples, unknowns), A e per draw
+    samples = problem.noise_residuals.shape[0]
+    unit_cov = moved.T @ moved / samples
+    explained = jnp.sum(moved * (moved @ (jacobian.T @ jacobian))) / samples
+    unit_rss = problem.noise_power - explained
+    variance = jnp.sum(r_data**2) / jnp.maximum(unit_rss, 1e-30)
+    # The priors act as observations with the residual's noise level: their share of the
+    # uncertainty is what keeps an axis the data do not see at about its prior width.
+    prior_part = inverse @ (prior_jac.T @ prior_jac) @ inverse * prior_weight**2
+    cov_y = unit_cov * variance + prior_part
+    scale = jnp.asarray(WRENCH_SCALE, dtype)
+    covariance = cov_y[WRENCH_COORDINATES, WRENCH_COORDINATES] * scale[:, None] * scale[None, :]
+    y_out = y + pending
+    solution = LoadState.from_vector(y_out)
+    wrench, contact, exposure = solution.wrench, solution.contact, solution.exposure
+    # Contact from the data: has the fringe phase moved beyond its noise somewhere?
+    in_contact = problem._phase_change_statistic(observed, screen) > problem.contact_threshold
+    status = _status(result, screen, in_contact, y)
+    # How much of the fringe phase's change from the reference the fit leaves, both above
+    # what the frame's and the reference's pixel noise alone would leave there: judged on
+    # the phase, which the wrench rests on, whatever else the residual holds.
+    size = problem.fringe_weight.size
+    noise_cost = (screen.noise_variance + problem.reference_noise) * jnp.sum(problem.unit_phase_noise)
+    left = jnp.sum(r_data[size : 2 * size] ** 2) - noise_cost
+    change = jnp.sum(r_zero[size : 2 * size] ** 2) - noise_cost
+    implausible = jnp.any(jnp.abs(solution.scaled_wrench) > _IMPLAUSIBLE_RANGES)
+    unexplained = (left > _UNEXPLAINED_SHARE * jnp.maximum(change, 0.0)) | implausible
+    # An unexplained frame keeps its wrench and covariance, and a converged one still
+    # seeds the next frame of a stream: the flag is for the user, not the solver.
+    ok = (status == Status.CONVERGED) | (status == Status.MAX_STEPS)
+    converged = status == Status.CONVERGED
+    status = jnp.where(ok & unexplained, Status.UNEXPLAINED, status).astype(status.dtype)
+    nan6 = jnp.full(6, jnp.nan, dtype)
+    wrench = jnp.where(ok, wrench, jnp.where(status == Status.NO_CONTACT, jnp.zeros(6, dtype), nan6))
+    covariance = jnp.where(ok | (status == Status.NO_CONTACT), covariance, jnp.full((6, 6), jnp.nan, dtype))
+    sigma = jnp.sqrt(jnp.clip(jnp.diagonal(covariance), 0.0, None))
+    estimate = Estimate(
+        wrench=wrench,
+        covariance=covariance,
+        sigma=sigma,
+        contact=contact,
+        exposure=exposure,
+        status=status,
+        steps=steps,
+        rms=jnp.sqrt(variance),
+        state=LoadState.from_vector(jnp.where(ok, y_out, start)),
+    )
+    # Only a converged contact is a good linearisation point for the next frame.
+    track = Track(
+        state=LoadState.from_vector(jnp.where(ok, y, jnp.nan)),
+        jacobian=jacobian,
+        change=r_zero - r_data,
+        valid=converged,
+        light=jnp.ones((), dtype),
+    )
+    return estimate, track
+
+
+def _status(result, screen: "_Screen", in_contact, y):
+    solution_finite = jnp.all(jnp.isfinite(y))
+    status = jnp.where(result == optx.RESULTS.successful, Status.CONVERGED, Status.MAX_STEPS)
+    status = jnp.where(in_contact, status, Status.NO_CONTACT)
+    status = jnp.where(screen.refused, Status.BAD_FRAME, status)
+    status = jnp.where(screen.finite & solution_finite, status, Status.NONFINITE)
+    return status.astype(jnp.int32)

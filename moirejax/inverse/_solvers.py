@@ -1,0 +1,205 @@
+"""The two solvers of the band inversion: Levenberg–Marquardt for a frame without a usable
+last solution (several starts, then a refinement on the fringe phase), and frozen-Jacobian
+Gauss–Newton iterations for the next frame of a stream.
+
+Each takes the problem (an [`Inverter`][]: its residual, Jacobians and priors) and works on
+the solvers' coordinates of [`LoadState.vector`][moirejax.LoadState.vector].
+"""
+
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optimistix as optx
+from jaxtyping import Array, Bool
+
+from ._state import LoadState, N_PRIORS
+
+
+if TYPE_CHECKING:
+    from ._inversion import Inverter
+
+
+# A cold solve whose cost is above this fraction of the zero-load cost tries more starts.
+_UNEXPLAINED = 0.004
+
+
+def chord(problem: "Inverter", y, r, jacobian, args):
+    r"""Gauss–Newton iterations from the last frame's Jacobian, kept current by Broyden updates.
+
+    At camera rate consecutive frames are close, so the data Jacobian barely changes;
+    reusing it makes each iteration one model evaluation instead of eleven. Each step
+    $\Delta y$ and the residual change $\Delta r$ it caused (exact: same frame, same
+    model) update the Jacobian along that direction,
+    $J \leftarrow J + (\Delta r - J\Delta y)\Delta y^\top / \Delta y^\top\Delta y$,
+    so it follows the load along the stream instead of going stale. `r` is the
+    residual at `y` (a stream knows it from the last frame's prediction). The iterations
+    stop when the next step would move every unknown by less than `chord_tolerance`
+    of its standard error; that last step is returned as `pending`, for the estimate to
+    take without a model run to check it (its error is the Jacobian's relative error
+    times the step, a small fraction of a standard error). The frame is handed to
+    Levenberg–Marquardt if that has not happened after `chord_steps` iterations or if
+    the cost rises. Returns `(y, r, jacobian, steps, accepted, pending)`, `r` and
+    `jacobian` at `y`.
+    """
+    observed, noise = args
+
+    def step(y, r, jacobian):
+        prior_jac = problem._prior_jacobian(y, noise)
+        jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
+        gradient = jacobian.T @ r[:-N_PRIORS] + prior_jac.T @ r[-N_PRIORS:]
+        inverse = jnp.linalg.pinv(jtj, hermitian=True)
+        dy = -inverse @ gradient
+        # Steps in units of each unknown's standard error at this noise level, over the
+        # unknowns the data or the priors inform: on the fringe phase alone the exposure
+        # is not seen at all, has no standard error, and takes no step.
+        information = jnp.diagonal(jtj)
+        informed = information > 1e-9 * jnp.max(information)
+        sigma = noise * jnp.sqrt(jnp.clip(jnp.diagonal(inverse), 1e-30, None))
+        return dy, jnp.max(jnp.where(informed, jnp.abs(dy) / sigma, 0.0))
+
+    cost0 = jnp.sum(r**2)
+    dy, size = step(y, r, jacobian)
+
+    def cond(carry):
+        *_, size, k, ok = carry
+        return ok & (size > problem.chord_tolerance) & (k < problem.chord_steps)
+
+    def body(carry):
+        y, r, jacobian, dy, size, k, _ = carry
+        y_new = y + dy
+        r_new = problem.residuals(y_new, args)
+        # Below ~1e-4 of an axis' range the residual change is rounding, not secant.
+        secant = jnp.max(jnp.abs(dy)) > 1e-4
+        mismatch = (r_new - r)[:-N_PRIORS] - jacobian @ dy
+        update = jnp.outer(mismatch, dy) / jnp.maximum(jnp.sum(dy**2), 1e-30)
+        jacobian = jnp.where(secant & jnp.all(jnp.isfinite(update)), jacobian + update, jacobian)
+        dy_new, size_new = step(y_new, r_new, jacobian)
+        # A rising cost or a growing step means the Jacobian is too far from the truth:
+        # give the frame to Levenberg–Marquardt. (Single precision resolves the cost to
+        # about 1e-6 of itself, a step of ~0.1 standard error, hence the slack.)
+        shrinking = (size_new < size) | (size_new <= problem.chord_tolerance)
+        ok = (jnp.sum(r_new**2) <= cost0 * (1 + 1e-5)) & shrinking & jnp.all(jnp.isfinite(r_new))
+        return y_new, r_new, jacobian, dy_new, size_new, k + 1, ok
+
+    init = (y, r, jacobian, dy, size, jnp.asarray(0, jnp.int32), jnp.all(jnp.isfinite(r)))
+    y, r, jacobian, dy, size, steps, ok = jax.lax.while_loop(cond, body, init)
+    accepted = ok & (size <= problem.chord_tolerance)
+    return y, r, jacobian, steps, accepted, jnp.where(accepted, dy, 0.0)
+
+
+def levenberg_marquardt(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array, ""] = True):
+    """Levenberg–Marquardt from `y0`, then again from its solution with the shear
+    forces zeroed; the lower cost wins.
+
+    From a cold start the contact and normal load are wrong at first, and the shear can
+    absorb part of that error and settle in a wrong basin (on one unit's held-out
+    loads, 1 frame in 98 ended with Fy 0.18 N off and 3.7x the residual). Once contact
+    and normal load are right, a second solve with no shear finds the right basin; when
+    the first solve was already right it converges back in a few steps.
+
+    When neither converges (a strong wrong basin: a light, strongly sheared press whose
+    brightness centroid misplaces the contact by 1.7 mm ended at 300x the right cost),
+    or when the better one leaves more than `_UNEXPLAINED` of the zero-load residual
+    unexplained, six more starts in turn: the contact where the fringes changed most
+    ([`Inverter.fringe_change_centre`][moirejax.Inverter.fringe_change_centre]), the contact halfway to the centre, and each
+    shear direction at half its range. The second test catches a wrong basin the solver
+    calls converged: on 200 mixed noise-free and noisy loads, correct fits left at most
+    0.14% unexplained and two wrong ones (Fx 116% and Fy 35% of range off) 1.3-1.8%.
+    A faint contact in noise also leaves much unexplained and pays for the extra starts.
+
+    `more_starts=False` (streams) stops after the first two starts. On a `high`-fidelity
+    recording of an uncalibrated unit with illumination drift, right fits leave 0.3-3%
+    unexplained (6% without contact) and faint presses often end at `max_steps`, so the
+    six starts ran at most cold solves and took them from 0.7 to 2-3.5 s, which a live
+    stream pays in dropped frames at each contact onset. A stream's cold start is usually
+    a light press at contact onset, the stream follows the load from there, and a frame
+    that did not converge is retried cold on the next frame.
+    """
+    solver = optx.LevenbergMarquardt(rtol=problem.rtol, atol=problem.atol, linear_solver=lx.QR())
+    zero_cost = jnp.sum(problem._zero_residuals(args[0]) ** 2)
+    fringe_centre = problem.fringe_change_centre(args[0])
+    first = LoadState.from_vector(y0)
+    fallbacks = jnp.stack(
+        [
+            first.with_shear(0.0, 0.0).with_contact_at(fringe_centre[0], fringe_centre[1]).vector(),
+            first.with_contact_at(0.5 * first.x0, 0.5 * first.y0).vector(),
+            first.with_shear(0.5, first.scaled_wrench[1]).vector(),
+            first.with_shear(-0.5, first.scaled_wrench[1]).vector(),
+            first.with_shear(first.scaled_wrench[0], 0.5).vector(),
+            first.with_shear(first.scaled_wrench[0], -0.5).vector(),
+        ]
+    )
+
+    # One solver inside a loop over the starts, not one per start: each traced solve
+    # is a copy of the whole model in the compiled program, and compilation was most of
+    # a first frame's cost (35 s with three copies).
+    def cond(carry):
+        k, _, _, _, _, more = carry
+        return (k < 2) | (more & (k < 2 + fallbacks.shape[0]))
+
+    def body(carry):
+        k, y, cost, result, steps, more = carry
+        no_shear = LoadState.from_vector(y).with_shear(0.0, 0.0).vector()
+        start = jnp.where(k == 0, y0, jnp.where(k == 1, no_shear, fallbacks[jnp.clip(k - 2, 0, None)]))
+        sol = optx.least_squares(problem.residuals, solver, start, args=args, max_steps=problem.max_steps, throw=False)
+        new_cost = jnp.sum(problem.residuals(sol.value, args) ** 2)
+        better = (k == 0) | (jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf) < cost)
+        y = jnp.where(better, sol.value, y)
+        cost = jnp.where(better, jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf), cost)
+        result = optx.RESULTS.where(better, sol.result, result)
+        steps = steps + jnp.asarray(sol.stats["num_steps"], jnp.int32)
+        # After the first two starts, the fallbacks run only if neither converged or
+        # the better one explains the frame poorly.
+        poor = cost > _UNEXPLAINED * zero_cost
+        more = jnp.where(k == 1, more_starts & ((result != optx.RESULTS.successful) | poor), more)
+        return k + 1, y, cost, result, steps, more
+
+    init = (
+        jnp.asarray(0, jnp.int32),
+        y0,
+        jnp.asarray(jnp.inf, y0.dtype),
+        optx.RESULTS.successful,
+        jnp.asarray(0, jnp.int32),
+        jnp.asarray(False),
+    )
+    _, y, _, result, steps, _ = jax.lax.while_loop(cond, body, init)
+    return y, problem.residuals(y, args), problem._data_jacobian(y, args[0]), steps, result
+
+
+def best_start(candidates, residuals):
+    """The candidate with the lowest cost, and its residual."""
+    costs = jnp.stack([jnp.sum(r**2) for r in residuals])
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+    best = jnp.argmin(costs)
+    return jnp.stack(candidates)[best], jnp.stack(residuals)[best]
+
+
+def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array, ""]):
+    """Levenberg–Marquardt on the full residual from `y0` (the brightness places a cold
+    start in the right basin on a unit that glows), then, unless the inverter fits the
+    brightness, two refinements on the fringe phase alone: with the contact light the
+    device describes, and with none. Returns the better refinement as
+    `(y, r, jacobian, steps, result, light)`, `r` and `jacobian` those of
+    `problem._fit_for(light)`."""
+    y, r, jacobian, steps, result = levenberg_marquardt(problem, y0, args, more_starts=more_starts)
+    if problem.brightness:
+        return y, r, jacobian, steps, result, jnp.ones((), y.dtype)
+    zero_cost = jnp.sum(problem.phase_only(1.0)._zero_residuals(args[0]) ** 2)
+
+    def refine(more, light):
+        # The device's light first; the second refinement (no light) tries further
+        # starts only when the first leaves the frame poorly explained: a unit that
+        # glows as the device says is done in a few steps, one that does not needs them.
+        y_, r_, jacobian_, steps_, result_ = levenberg_marquardt(problem.phase_only(light), y, args, more_starts=more)
+        poor = jnp.sum(r_[:-N_PRIORS] ** 2) > _UNEXPLAINED * zero_cost
+        return more_starts & poor, (y_, r_, jacobian_, steps_, result_)
+
+    # One traced solver run twice (light as the device says, then none), not two copies.
+    lights = jnp.asarray([1.0, 0.0], y.dtype)
+    _, (ys, rs, jacobians, refine_steps, results) = jax.lax.scan(refine, jnp.asarray(False), lights)
+    costs = jnp.sum(rs[:, :-N_PRIORS] ** 2, axis=1)
+    best = jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))
+    y, r, jacobian, result = jax.tree_util.tree_map(lambda a: a[best], (ys, rs, jacobians, results))
+    return y, r, jacobian, steps + jnp.sum(refine_steps).astype(steps.dtype), result, lights[best]
