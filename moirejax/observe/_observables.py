@@ -676,6 +676,23 @@ class Demodulator(eqx.Module):
         pixel = 1 / self.px_per_mm.astype(dtype)
         return -(cols - 1) / 2 * (w / cols) * pixel, (rows - 1) / 2 * (h / rows) * pixel
 
+    def _grid_axes(self, rows, cols, dtype):
+        """The x (columns) and y (rows) positions, mm, of a cell-centred `rows x cols` grid."""
+        h, w = self.frame_shape
+        grid_x0, grid_y0 = self._grid_origin(rows, cols, dtype)
+        pixel = 1 / self.px_per_mm.astype(dtype)
+        grid_x = grid_x0 + jnp.arange(cols, dtype=dtype) * (w / cols) * pixel
+        grid_y = grid_y0 - jnp.arange(rows, dtype=dtype) * (h / rows) * pixel
+        return grid_x, grid_y
+
+    def _reference_ramp(self, reference_wavevector, dtype):
+        """The nominal wavevectors, the reference ones (the nominal for `None`), and the phase
+        ramp on the coarse grid that refers a band from the first to the second."""
+        nominal = self.wavevectors.astype(dtype)
+        reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(dtype)
+        ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(dtype), self.coarse_y.astype(dtype))
+        return nominal, reference_k, ramp
+
     def _window_offsets(self, dtype):
         """Wavevector offsets of the window bins from the centre bin, natural order (rad/mm)."""
         h, w = self.frame_shape
@@ -749,18 +766,12 @@ class Demodulator(eqx.Module):
         families, rows, cols = field.shape
         if families != self.num_families:
             raise ValueError(f"field shape {field.shape} needs {self.num_families} families.")
-        h, w = self.frame_shape
         real_dtype = _real_dtype(jnp, field.dtype)
-        nominal = self.wavevectors.astype(real_dtype)
-        reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(real_dtype)
-        grid_x0, grid_y0 = self._grid_origin(rows, cols, real_dtype)
-        pixel = 1 / self.px_per_mm.astype(real_dtype)
-        grid_x = grid_x0 + jnp.arange(cols, dtype=real_dtype) * (w / cols) * pixel
-        grid_y = grid_y0 - jnp.arange(rows, dtype=real_dtype) * (h / rows) * pixel
+        nominal, reference_k, ramp = self._reference_ramp(reference_wavevector, real_dtype)
+        grid_x, grid_y = self._grid_axes(rows, cols, real_dtype)
         # The sub-bin offset K - k_bin turns this grid's DFT bins into the window's offsets.
         carrier = _ramp(jnp, nominal - self.bin_wavevectors.astype(real_dtype), grid_x, grid_y)
         raw = self._grid_band_pass(field * carrier.astype(field.dtype), self.bin_wavevectors, self.fringe_transfer)
-        ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
         return raw / self._reference_response(reference_k, field.dtype) * ramp
 
     def smallest_band_grid(self, families: tuple[int, ...] | None = None) -> int:
@@ -824,8 +835,7 @@ class Demodulator(eqx.Module):
         real_dtype = jnp.dtype(jnp.result_type(float) if dtype is None else dtype)
         complex_dtype = np.complex64 if real_dtype == np.float32 else np.complex128
         select = np.asarray(families, dtype=int)
-        nominal = self.wavevectors.astype(real_dtype)
-        reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(real_dtype)
+        _, reference_k, ramp = self._reference_ramp(reference_wavevector, real_dtype)
         frame_x0, frame_y0 = self._grid_origin(h, w, real_dtype)
         grid_x0, grid_y0 = self._grid_origin(rows, cols, real_dtype)
         dkx, dky = self._window_offsets(real_dtype)
@@ -837,7 +847,6 @@ class Demodulator(eqx.Module):
         phase = phase + (dkx * (frame_x0 - grid_x0))[None, None, :] + (dky * (frame_y0 - grid_y0))[None, :, None]
         transfer = jnp.concatenate([self.fringe_transfer[select], self.brightness_transfer[None]]).astype(complex_dtype)
         spectral = transfer * _expi(jnp, phase) * (h * w / (rows * cols))
-        ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
         return RealBandPass(
             shape=(rows, cols),
             crop_shape=(m, n),
@@ -869,19 +878,13 @@ class Demodulator(eqx.Module):
         families = tuple(int(f) for f in families)
         select = np.asarray(families, dtype=int)
         m, n = self.crop_shape
-        h, w = self.frame_shape
         if rows < m or cols < n:
             raise ValueError(f"grid {shape} has fewer samples than crop_shape {self.crop_shape}.")
         real_dtype = jnp.dtype(jnp.result_type(float) if dtype is None else dtype)
         complex_dtype = np.complex64 if real_dtype == np.float32 else np.complex128
-        nominal = self.wavevectors.astype(real_dtype)
-        reference_k = nominal if reference_wavevector is None else reference_wavevector.astype(real_dtype)
-        grid_x0, grid_y0 = self._grid_origin(rows, cols, real_dtype)
-        pixel = 1 / self.px_per_mm.astype(real_dtype)
-        grid_x = grid_x0 + jnp.arange(cols, dtype=real_dtype) * (w / cols) * pixel
-        grid_y = grid_y0 - jnp.arange(rows, dtype=real_dtype) * (h / rows) * pixel
+        nominal, reference_k, ramp = self._reference_ramp(reference_wavevector, real_dtype)
+        grid_x, grid_y = self._grid_axes(rows, cols, real_dtype)
         regrid = self._regrid(self.bin_wavevectors[select], rows, cols, real_dtype)
-        ramp = _ramp(jnp, reference_k - nominal, self.coarse_x.astype(real_dtype), self.coarse_y.astype(real_dtype))
         spectral = self.fringe_transfer[select].astype(complex_dtype) * regrid
         if blur is not None:
             k_bin = self.bin_wavevectors.astype(real_dtype)[select]
