@@ -66,6 +66,7 @@ from .inverse import (
     default_model_shape as default_model_shape,
     Estimate as Estimate,
     frame_tracker as frame_tracker,
+    FrameTracker as FrameTracker,
     invert as invert,
     Inverter as Inverter,
     LoadState as LoadState,
@@ -75,6 +76,7 @@ from .inverse import (
     Status as Status,
     Track as Track,
 )
+from .live import open_sensor as open_sensor
 from .observe import (
     band_model as band_model,
     BandModel as BandModel,

@@ -17,6 +17,8 @@ WRENCH_UNITS = ("N", "N", "N", "N·m", "N·m", "N·m")
 """The unit of each component of [`WRENCH_AXES`][moirejax.WRENCH_AXES]."""
 # Public torques are N·m, the model's are N·mm.
 NMM_PER_NM = 1000.0
+# The model's tractions are MPa (N/mm²); pressure maps for other tools are Pa.
+PA_PER_MPA = 1e6
 PAPER_RANGES = {"fx": 0.2, "fy": 0.2, "fz": 1.2, "tx": 0.012, "ty": 0.012, "tz": 0.008}
 """The paper's calibrated load range of each axis (N and N·m): the scale on which errors are
 reported and the solver's unknowns are normalised."""

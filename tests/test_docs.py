@@ -82,7 +82,10 @@ def _resolve(path: str):
 def test_api_reference_lists_every_public_name_once():
     documented = _documented()
     public = _public_names(mj) | _public_names(moirejax.live)
-    missing = sorted(public - set(documented))
+    # A name re-exported at the top level (`moirejax.open_sensor` for
+    # `moirejax.live.open_sensor`) is documented once, under either path.
+    entries = {(path.rsplit(".", 1)[-1], id(_resolve(path))) for path in documented}
+    missing = sorted(path for path in public if (path.rsplit(".", 1)[-1], id(_resolve(path))) not in entries)
     assert not missing, f"public names missing from docs/api/*.md: {missing}"
     repeated = sorted({path for path in documented if documented.count(path) > 1})
     assert not repeated, f"documented twice: {repeated}"

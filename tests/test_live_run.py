@@ -188,8 +188,9 @@ def test_folder_with_a_corrupt_image_gives_a_status_record(device, inverter, ref
 
 def test_wrong_sized_frames_and_missing_sources_are_reported(device, inverter, reference, tmp_path):
     processor = make_tactile_processor(inverter, reference)
-    wrench, covariance, status, message = processor(np.zeros((100, 120), np.float32))
+    wrench, covariance, status, message, extras = processor(np.zeros((100, 120), np.float32))
     assert status == "wrong_size" and np.all(np.isnan(wrench)) and covariance is None and "(100, 120)" in message
+    assert extras == {}
     with pytest.raises(FileNotFoundError, match="no_such_video"):
         run_live(device, str(tmp_path / "no_such_video.mp4"), sinks=[], inverter=inverter)
     # A source that fails before its first frame is reported before an inverter is built.

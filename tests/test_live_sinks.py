@@ -12,7 +12,27 @@ import pytest
 from moirejax.live import FileSink, make_record, StreamSink, StripChart, UdpSink, VideoRecorder
 
 
-FIELDS = ["stamp", "frame", "mode", "status", "force", "torque", "covariance", "latency_ms", "message"]
+FIELDS = [
+    "version",
+    "sensor_id",
+    "frame_id",
+    "seq",
+    "stamp",
+    "monotonic",
+    "frame",
+    "mode",
+    "status",
+    "in_contact",
+    "force",
+    "torque",
+    "covariance",
+    "out_of_range",
+    "centre_of_pressure_mm",
+    "contact_area_mm2",
+    "filtered",
+    "latency_ms",
+    "message",
+]
 
 
 def sample(frame=7, **kwargs):

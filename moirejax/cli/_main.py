@@ -285,7 +285,7 @@ def _cmd_transfer(args: argparse.Namespace) -> int:
 
 def _cmd_live(args: argparse.Namespace) -> int:
     from ..calibration import load_calibrated
-    from ..live import format_summary, parse_sink, run_live
+    from ..live import format_summary, McapSink, parse_sink, RecordStream, run_live, WrenchFilter
 
     device, _ = load_calibrated(args.device)
     source = args.source
@@ -301,7 +301,16 @@ def _cmd_live(args: argparse.Namespace) -> int:
     for spec in args.sink or []:
         if spec not in ("-", "stdout") and not spec.lower().startswith("udp://"):
             check_output_file(spec, argument="sink")
+    if args.mcap:
+        check_output_file(args.mcap, argument="mcap")
     sinks = [parse_sink(spec) for spec in (args.sink or ["-"])]
+    if args.mcap:
+        sinks.append(McapSink(args.mcap, frame_id=args.frame_id))
+    records = RecordStream(
+        sensor_id=args.sensor_id,
+        frame_id=args.frame_id,
+        filter=WrenchFilter(args.process_noise) if args.filter == "kalman" else None,
+    )
     try:
         summary = run_live(
             device,
@@ -313,6 +322,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
             rectification=args.rectification,
             reference=args.reference,
             replay_fps=args.replay_fps,
+            records=records,
         )
     finally:
         for sink in sinks:
@@ -468,6 +478,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", metavar="IMAGE", help="no-contact frame (default: the first frames of the source)")
     p.add_argument(
         "--replay-fps", type=float, metavar="FPS", help="play a video file at this rate, as a camera would deliver it"
+    )
+    p.add_argument("--mcap", metavar="OUT.mcap", help="also write ROS 2 messages (wrench, frames, pressure) to MCAP")
+    p.add_argument("--sensor-id", default="moirejax", help="the records' sensor name (default: moirejax)")
+    p.add_argument(
+        "--frame-id", default="moirejax_sensor", help="ROS frame name of the wrench (default: moirejax_sensor)"
+    )
+    p.add_argument(
+        "--filter",
+        choices=("none", "kalman"),
+        default="none",
+        help="kalman: filter in-contact wrenches with each frame's covariance",
+    )
+    p.add_argument(
+        "--process-noise",
+        type=float,
+        default=0.05,
+        metavar="FRACTION",
+        help="the Kalman filter's load change per frame, as a fraction of each axis's range",
     )
     p.set_defaults(run=_cmd_live)
 

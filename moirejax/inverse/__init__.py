@@ -12,7 +12,7 @@ from ._inversion import (
     Inverter as Inverter,
     model_grid_for as model_grid_for,
 )
-from ._invert import frame_tracker as frame_tracker, invert as invert
+from ._invert import frame_tracker as frame_tracker, FrameTracker as FrameTracker, invert as invert
 from ._invert_io import (
     check_source as check_source,
     find_reference as find_reference,

@@ -170,6 +170,10 @@ class Inverter(eqx.Module):
       unit are not removed).
     - `match_reference`: set the upper grating's pitch and angle so that the model's moiré
       wavevectors match those measured on `reference` ([`match_reference_geometry`][]).
+    - `register_gratings`: shift the model's grating phase so that its fringes at zero load
+      lie where the reference's do; `None` does it exactly when `match_reference` does. A
+      new reference of a unit whose geometry is already matched (a tare) registers
+      without matching: the geometry, and with it the compiled solver, stays.
     - `crop_shape`: coarse demodulation grid.
     - `model_shape`: grid of the mechanics and the predicted fringe field; `None` for
       [`default_model_shape`][]: [`model_grid_for`][] (8 samples per moiré period and 6
@@ -228,6 +232,7 @@ class Inverter(eqx.Module):
         contact_threshold: float = 10.0,
         brightness: bool = False,
         match_reference: bool = True,
+        register_gratings: bool | None = None,
         chord_steps: int = 4,
         chord_tolerance: float = 0.25,
         carriers: bool | None = None,
@@ -312,7 +317,7 @@ class Inverter(eqx.Module):
                 )
             self.reference = self.demodulator(reference)
             self.model_reference = self._predict_now(zero, self.reference.reference_wavevector)
-            if match_reference:
+            if match_reference if register_gratings is None else register_gratings:
                 # Register the gratings: the model's fringe phase at zero load must match
                 # the unit's, or the contact glow that leaks into the fringe band would be
                 # mis-phased against the moire term by the reference correction.

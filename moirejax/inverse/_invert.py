@@ -5,7 +5,6 @@
 them, for use inside a user's own `jit`, `vmap` or `grad`.
 """
 
-import functools
 from collections.abc import Callable, Iterable, Iterator
 
 import equinox as eqx
@@ -81,7 +80,7 @@ def invert(
     return jax.tree_util.tree_map(lambda *x: np.stack(x), *estimates)
 
 
-def frame_tracker(inverter: Inverter) -> Callable[[Real[Array, "h w"], Track], tuple[Estimate, Track]]:
+def frame_tracker(inverter: Inverter) -> "FrameTracker":
     """The streaming entry point: `step = frame_tracker(inverter)`, then per camera frame
     `estimate, track = step(frame, track)`, starting from `inverter.cold_track()`.
 
@@ -90,14 +89,46 @@ def frame_tracker(inverter: Inverter) -> Callable[[Real[Array, "h w"], Track], t
     The step compiles on its first frame and never again for frames of the device's size
     and dtype. An `Inverter` is some 130 arrays, which `eqx.filter_jit` would flatten at
     every call; here they are flattened once, and each frame goes through `jax.jit`'s own
-    dispatch.
+    dispatch. A new reference of the same unit ([`FrameTracker.with_inverter`][]) reuses
+    the compiled step.
     """
     arrays, static = eqx.partition(inverter, eqx.is_array)
 
     def track_frame(arrays, frame, track):
         return eqx.combine(arrays, static).track(frame, track)
 
-    return functools.partial(jax.jit(track_frame), arrays)
+    return FrameTracker(jax.jit(track_frame), arrays, static)
+
+
+class FrameTracker:
+    """One compiled streaming step of an [`Inverter`][]; made by [`frame_tracker`][].
+
+    `step(frame, track) -> (estimate, track)` inverts one frame of the device's size.
+    """
+
+    def __init__(self, compiled: Callable, arrays: Inverter, static: Inverter):
+        self._compiled = compiled
+        self._arrays = arrays
+        self._static = static
+
+    def __call__(self, frame: Real[ArrayLike, "h w"], track: Track) -> tuple[Estimate, Track]:
+        return self._compiled(self._arrays, frame, track)
+
+    def with_inverter(self, inverter: Inverter) -> "FrameTracker":
+        """The same step for another [`Inverter`][] of the unit, e.g. one built on a new
+        no-contact reference (a tare): the compiled program is reused when everything but
+        the inverter's array values is the same (build it from `self`'s `inverter.device`
+        with `match_reference=False, register_gratings=True`, which keeps the geometry the
+        demodulator is laid out on); otherwise the new step compiles on its first frame.
+        """
+        arrays, static = eqx.partition(inverter, eqx.is_array)
+        same_layout = jax.tree_util.tree_structure(arrays) == jax.tree_util.tree_structure(self._arrays) and all(
+            jnp.shape(a) == jnp.shape(b) and jnp.result_type(a) == jnp.result_type(b)
+            for a, b in zip(jax.tree_util.tree_leaves(arrays), jax.tree_util.tree_leaves(self._arrays))
+        )
+        if same_layout and eqx.tree_equal(static, self._static) is True:
+            return FrameTracker(self._compiled, arrays, self._static)
+        return frame_tracker(inverter)
 
 
 @eqx.filter_jit

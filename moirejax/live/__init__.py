@@ -1,4 +1,5 @@
-"""Live sensing: frame sources, rectification, the GateER contact gate, vision mode, output sinks and the live loop.
+"""Live sensing: frame sources, rectification, the GateER contact gate, vision mode, output
+sinks (JSON lines, UDP, MCAP for ROS 2), the live loop, and the in-process sensor handle.
 
 This is I/O and control code in numpy/OpenCV around the differentiable core: the wrench
 inversion plugs in as `process_tactile` of [`run_pipeline`][].
@@ -21,7 +22,10 @@ from ._controller import (
     Timeline as Timeline,
 )
 from ._gate import GateDecision as GateDecision, GateER as GateER
+from ._handle import open_sensor as open_sensor, SensorHandle as SensorHandle
+from ._mcap import McapSink as McapSink
 from ._pipeline import LiveSummary as LiveSummary, run_pipeline as run_pipeline
+from ._records import RecordStream as RecordStream, WrenchFilter as WrenchFilter
 from ._rectify import (
     calibrate_rectification as calibrate_rectification,
     detect_blobs as detect_blobs,
@@ -47,6 +51,7 @@ from ._run import (
 from ._sinks import (
     FileSink as FileSink,
     make_record as make_record,
+    RECORD_VERSION as RECORD_VERSION,
     StreamSink as StreamSink,
     StripChart as StripChart,
     UdpSink as UdpSink,

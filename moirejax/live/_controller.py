@@ -298,7 +298,7 @@ def run_cap_removal(
         frame = sensor.frame(i)
         mode = gate.update(frame).mode
         if mode == "tactile":
-            wrench, _, status, _ = processor(frame)
+            wrench, _, status, *_ = processor(frame)
         else:
             processor.reset()
             wrench, status = np.zeros(6), "no_contact"

@@ -1,8 +1,8 @@
 """The live loop: frames in, gated wrench records out, never stopped by one bad frame.
 
 For every frame: rectify, gate (vision/tactile), and in tactile mode call the
-user-supplied `process_tactile(frame) -> (wrench6, cov6x6 | None, status, message)`
-(the inversion); in vision mode the wrench is zero and an optional vision hook may
+user-supplied `process_tactile(frame) -> (wrench6, cov6x6 | None, status, message[, extras])`
+(the inversion; `extras` may give the record's `contact_area_mm2` and `pressure` map); in vision mode the wrench is zero and an optional vision hook may
 describe the scene. Source events (corrupt frames, reconnections, the end of the stream)
 and any exception on the way become status records, in order with the frame records.
 The loop ends at the end of the source, after `max_frames`, when a `stop` event is set,
@@ -24,6 +24,7 @@ import numpy as np
 
 from ._camera import AbstractFrameSource, Frame, SourceEvent
 from ._gate import GateER
+from ._records import RecordStream
 from ._rectify import Rectification
 from ._sinks import make_record, Sink, VideoRecorder, WrenchRecord
 
@@ -93,11 +94,17 @@ def _stop_on_sigint(stop: threading.Event) -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def _check_output(output: Any) -> tuple[np.ndarray, np.ndarray | None, str, str]:
+_EXTRAS = frozenset({"contact_area_mm2", "pressure"})
+
+
+def _check_output(output: Any) -> tuple[np.ndarray, np.ndarray | None, str, str, dict[str, Any]]:
     """Validate what `process_tactile` returned; raises `ValueError` naming the problem."""
-    if not isinstance(output, tuple | list) or len(output) != 4:
-        raise ValueError(f"expected (wrench, covariance, status, message), got {type(output).__name__}")
-    wrench, covariance, status, message = output
+    if not isinstance(output, tuple | list) or len(output) not in (4, 5):
+        raise ValueError(f"expected (wrench, covariance, status, message[, extras]), got {type(output).__name__}")
+    wrench, covariance, status, message = output[:4]
+    extras = dict(output[4]) if len(output) == 5 and output[4] is not None else {}
+    if not set(extras) <= _EXTRAS:
+        raise ValueError(f"unknown extras {sorted(set(extras) - _EXTRAS)}; known: {sorted(_EXTRAS)}")
     wrench = np.asarray(wrench, dtype=np.float64)
     if wrench.shape != (6,):
         raise ValueError(f"wrench must have shape (6,), got {wrench.shape}")
@@ -105,7 +112,7 @@ def _check_output(output: Any) -> tuple[np.ndarray, np.ndarray | None, str, str]
         covariance = np.asarray(covariance, dtype=np.float64)
         if covariance.shape != (6, 6):
             raise ValueError(f"covariance must have shape (6, 6), got {covariance.shape}")
-    return wrench, covariance, str(status), str(message)
+    return wrench, covariance, str(status), str(message), extras
 
 
 def run_pipeline(
@@ -119,6 +126,7 @@ def run_pipeline(
     vision: VisionHook | None = None,
     record: VideoRecorder | None = None,
     stop: threading.Event | None = None,
+    records: RecordStream | None = None,
 ) -> LiveSummary:
     """Run the live loop until the source ends, `max_frames` frames, SIGINT, or `stop` is set.
 
@@ -128,7 +136,9 @@ def run_pipeline(
     - `process_tactile`: `fn(gray) -> (wrench, covariance, status, message)` on the
         rectified float32 frame in [0, 1]; `wrench` is `[fx, fy, fz, tx, ty, tz]` in N and
         N*m, `covariance` 6x6 or `None`. Exceptions become `"process_error"` records.
-    - `sinks`: receive every record in order (they are not closed here).
+    - `sinks`: receive every record in order (they are not closed here). A sink with an
+        `emit_image(image, record)` method also gets each frame (colour if the source has
+        it), and one with `emit_pressure(pressure, record)` each record's pressure map.
     - `gate`: the contact gate; `None` treats every frame as tactile.
     - `max_frames`: stop after this many frames.
     - `rectification`: applied to the gray and colour frames first.
@@ -136,6 +146,8 @@ def run_pipeline(
         rectified [`Frame`][]; its message goes into the record.
     - `record`: optional [`VideoRecorder`][] for an annotated video (not closed here).
     - `stop`: an event that ends the loop when set (from another thread).
+    - `records`: a [`RecordStream`][] that completes every record (identity, sequence,
+        tare bias, range flags, centre of pressure, filter) before the sinks see it.
 
     **Returns:** a [`LiveSummary`][].
     """
@@ -143,19 +155,29 @@ def run_pipeline(
     wall_offset = time.time() - time.monotonic()
     statuses: Counter[str] = Counter()
     latencies: list[float] = []
-    frames = switches = records = output_errors = 0
+    frames = switches = n_records = output_errors = 0
     next_index = 0  # frame index for the record of an interruption
     stopped_by = INTERRUPTED
     mode = gate.mode if gate is not None else "tactile"
     started = time.monotonic()
 
     def emit(rec: WrenchRecord, image: np.ndarray | None = None) -> None:
-        nonlocal records, output_errors
+        nonlocal n_records, output_errors
+        if records is not None:
+            try:
+                rec = records.finish(rec, rec.stamp - wall_offset)
+            except Exception as e:
+                output_errors += 1
+                logger.warning("record stream failed: %s", e)
         statuses[rec.status] += 1
-        records += 1
+        n_records += 1
         for sink in sinks:
             try:
                 sink.emit(rec)
+                if image is not None and hasattr(sink, "emit_image"):
+                    sink.emit_image(image, rec)
+                if rec.pressure is not None and hasattr(sink, "emit_pressure"):
+                    sink.emit_pressure(rec.pressure, rec)
             except Exception as e:
                 output_errors += 1
                 logger.warning("sink %s failed: %s", type(sink).__name__, e)
@@ -218,7 +240,7 @@ def run_pipeline(
     return LiveSummary(
         frames=frames,
         dropped=source.dropped,
-        records=records,
+        records=n_records,
         latency_ms_median=float(np.median(lat)),
         latency_ms_p90=float(np.percentile(lat, 90)),
         fps=frames / elapsed if elapsed > 0 else 0.0,
@@ -235,6 +257,7 @@ def _process(
 ) -> WrenchRecord:
     """The record of one gated frame; exceptions become status records."""
     wrench = covariance = None
+    extras: dict[str, Any] = {}
     if mode == "tactile":
         try:
             output = process_tactile(frame.gray)
@@ -242,7 +265,7 @@ def _process(
             status, message = PROCESS_ERROR, f"{type(e).__name__}: {e}"
         else:
             try:
-                wrench, covariance, status, message = _check_output(output)
+                wrench, covariance, status, message, extras = _check_output(output)
             except ValueError as e:
                 status, message = BAD_OUTPUT, str(e)
     else:
@@ -261,4 +284,5 @@ def _process(
         covariance=covariance,
         latency_ms=(time.monotonic() - frame.stamp) * 1e3,
         message=message,
+        **extras,
     )

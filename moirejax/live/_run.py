@@ -22,12 +22,14 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import jax
 import jax.random as jr
 import numpy as np
 
+from .._conventions import PA_PER_MPA
 from .._fileio import DataError
 from ..inverse import frame_tracker, Inverter, Status
-from ..physics import Contact, Device
+from ..physics import Contact, Device, surface_grid, surface_tractions
 from ..simulate import load_schedule, LoadSchedule, Simulator
 from ._camera import (
     AbstractFrameSource,
@@ -47,6 +49,7 @@ from ._camera import (
 )
 from ._gate import GateER
 from ._pipeline import LiveSummary, run_pipeline
+from ._records import RecordStream
 from ._rectify import load_rectification, Rectification
 from ._sinks import FileSink, Sink, StreamSink, StripChart, UdpSink, VideoRecorder
 from ._types import Real
@@ -57,7 +60,7 @@ logger = logging.getLogger("moirejax.live")
 
 # `fn(i) -> (wrench, contact)` for frame i, or `None` once the script is over.
 LoadScript = Callable[[int], tuple[Any, Contact] | None]
-TactileOutput = tuple[np.ndarray, np.ndarray | None, str, str]
+TactileOutput = tuple[np.ndarray, np.ndarray | None, str, str, dict[str, Any]]
 
 # A centred normal press moves the fringes little (the surface mostly sinks; the glow it
 # adds is a brightness change the gate ignores): on a high-fidelity "mid" unit the energy
@@ -69,20 +72,32 @@ TactileOutput = tuple[np.ndarray, np.ndarray | None, str, str]
 # onset (two on its MP4, benchmarks/live_latency.py) and one frame before release.
 GATE_ON_THRESHOLD = 0.0004
 
+# The grid of the pressure map drawn for sinks that take one (rows, columns over the field).
+PRESSURE_SHAPE = (64, 64)
+
 
 class TactileProcessor:
     """`process_tactile` for [`run_pipeline`][]: one step of [`frame_tracker`][] per frame.
 
     Made by [`make_tactile_processor`][]. Each call returns `(wrench, covariance, status,
-    message)` with `status` the lower-case [`Status`][] name (`"converged"`,
-    `"max_steps"`, `"unexplained"`, `"no_contact"`, `"bad_frame"`, `"nonfinite"`, `"wrong_size"`).
+    message, extras)` with `status` the lower-case [`Status`][] name (`"converged"`,
+    `"max_steps"`, `"unexplained"`, `"no_contact"`, `"bad_frame"`, `"nonfinite"`, `"wrong_size"`)
+    and `extras` the fitted contact patch's area (`contact_area_mm2`) and, with
+    `pressure_shape`, its pressure map in Pa (`pressure`, [`surface_tractions`][] of the
+    estimate on a grid of that shape over the field).
     The solver continues from the previous frame's solution and Jacobian while frames converge; any
     other outcome resets it to a cold start, so one bad frame cannot drag the next ones
     off. Frames are cast to the device's dtype, so every call hits the one compiled
-    step ([`frame_tracker`][]).
+    step ([`frame_tracker`][]). [`rebind`][TactileProcessor.rebind] swaps in an inverter on
+    a new reference (a tare) between two frames, from any thread.
     """
 
-    def __init__(self, inverter: Inverter, warmup_frame: np.ndarray | None = None):
+    def __init__(
+        self,
+        inverter: Inverter,
+        warmup_frame: np.ndarray | None = None,
+        pressure_shape: tuple[int, int] | None = None,
+    ):
         device = inverter.device
         self.inverter = inverter
         self.step = frame_tracker(inverter)
@@ -90,6 +105,11 @@ class TactileProcessor:
         self.dtype = np.dtype(device.p1.dtype)
         self.cold_track = inverter.cold_track()
         self.track = self.cold_track
+        self._lock = threading.Lock()
+        self._pressure = None
+        if pressure_shape is not None:
+            grid = surface_grid(pressure_shape, device.px_per_mm, self.shape, device.a, device.Z)
+            self._pressure = jax.jit(lambda wrench, contact: surface_tractions(wrench, contact, grid)[2] * PA_PER_MPA)
         # Compile now, not on the first contact: a 512x512 solve compiles for tens of
         # seconds on a laptop CPU. Any frame of the right size compiles the same program.
         frame = np.full(self.shape, 0.5, self.dtype) if warmup_frame is None else warmup_frame
@@ -98,7 +118,19 @@ class TactileProcessor:
 
     def reset(self) -> None:
         """Forget the warm start (the next frame is solved from a cold start)."""
-        self.track = self.cold_track
+        with self._lock:
+            self.track = self.cold_track
+
+    def rebind(self, inverter: Inverter) -> None:
+        """Invert the next frames with `inverter` (the same unit on a new reference), cold.
+
+        The compiled step is reused when `inverter` shares this one's layout
+        ([`FrameTracker.with_inverter`][moirejax.FrameTracker.with_inverter]).
+        """
+        step = self.step.with_inverter(inverter)
+        cold = inverter.cold_track()
+        with self._lock:
+            self.inverter, self.step, self.cold_track, self.track = inverter, step, cold, cold
 
     def __call__(self, gray: np.ndarray) -> TactileOutput:
         frame = np.asarray(gray, dtype=self.dtype)
@@ -106,18 +138,30 @@ class TactileProcessor:
             self.reset()
             status = Status.WRONG_SIZE
             message = f"{status.message} (frame {frame.shape}, device {self.shape}; rectify the camera frames)"
-            return np.full(6, np.nan), None, status.name.lower(), message
-        estimate, self.track = self.step(frame, self.track)
+            return np.full(6, np.nan), None, status.name.lower(), message, {}
+        with self._lock:
+            estimate, self.track = self.step(frame, self.track)
         status = Status(int(estimate.status))
+        radius = float(estimate.contact.radius)
+        extras: dict[str, Any] = {"contact_area_mm2": math.pi * radius**2 if status in _WITH_WRENCH else None}
+        if self._pressure is not None and status in _WITH_WRENCH:
+            extras["pressure"] = np.asarray(self._pressure(estimate.wrench, estimate.contact), np.float32)
         return (
             np.asarray(estimate.wrench, np.float64),
             np.asarray(estimate.covariance, np.float64),
             status.name.lower(),
             status.message,
+            extras,
         )
 
 
-def make_tactile_processor(inverter: Inverter, warmup_frame: np.ndarray | None = None) -> TactileProcessor:
+# The statuses whose estimate carries a load (the wrench of the others is not one).
+_WITH_WRENCH = (Status.CONVERGED, Status.MAX_STEPS)
+
+
+def make_tactile_processor(
+    inverter: Inverter, warmup_frame: np.ndarray | None = None, pressure_shape: tuple[int, int] | None = None
+) -> TactileProcessor:
     """Adapt a [`frame_tracker`][] step to `process_tactile` of [`run_pipeline`][].
 
     **Arguments:**
@@ -125,11 +169,12 @@ def make_tactile_processor(inverter: Inverter, warmup_frame: np.ndarray | None =
     - `inverter`: the unit's [`Inverter`][moirejax.inverse._inversion.Inverter].
     - `warmup_frame`: a frame of the device's size to compile with (e.g. the reference);
         default a uniform gray frame.
+    - `pressure_shape`: also return each frame's pressure map on a grid of this shape.
 
     **Returns:** a [`TactileProcessor`][]: `fn(gray) -> (wrench, covariance, status, message)`,
     already compiled.
     """
-    return TactileProcessor(inverter, warmup_frame)
+    return TactileProcessor(inverter, warmup_frame, pressure_shape)
 
 
 def make_gate(device: Device, **kwargs: Any) -> GateER:
@@ -440,6 +485,7 @@ def run_live(
     record_fps: Real = 30.0,
     replay_fps: float | None = None,
     stop: threading.Event | None = None,
+    records: RecordStream | None = None,
 ) -> LiveSummary:
     """Run the live sensor: frames from `source_spec` to wrench records in `sinks`.
 
@@ -466,6 +512,8 @@ def run_live(
     - `record_fps`: frame rate written into the recording.
     - `replay_fps`: play a video file at this rate, as a camera would deliver it.
     - `stop`: a `threading.Event` that ends the run when set.
+    - `records`: a [`RecordStream`][] completing every record (sensor and ROS frame names,
+        range flags, centre of pressure, filter); default one with the default names.
 
     **Returns:** the [`LiveSummary`][]; see [`format_summary`][].
 
@@ -505,7 +553,8 @@ def run_live(
         if reference_frame is not None and reference_frame.shape != shape:
             raise ValueError(f"reference frame is {reference_frame.shape}, device expects {shape}")
         inverter = Inverter(device, reference=reference_frame)
-    processor = make_tactile_processor(inverter, reference_frame)
+    draws_pressure = any(hasattr(sink, "emit_pressure") for sink in sinks)
+    processor = make_tactile_processor(inverter, reference_frame, PRESSURE_SHAPE if draws_pressure else None)
 
     owned: list[Any] = []
     all_sinks = list(sinks)
@@ -528,6 +577,7 @@ def run_live(
             vision=make_colour_probe(device) if vision else None,
             record=recorder,
             stop=stop,
+            records=records if records is not None else RecordStream(),
         )
     finally:
         for thing in owned:

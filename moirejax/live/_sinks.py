@@ -6,9 +6,13 @@ disk or a UDP port nobody listens on cannot stop the sensor loop.
 
 A record is one JSON object per line:
 `{"stamp": s, "frame": int, "mode": "vision"|"tactile", "status": str, "force": [fx, fy, fz] | null,
-"torque": [tx, ty, tz] | null, "covariance": 6x6 | null, "latency_ms": float, "message": str}`
+"torque": [tx, ty, tz] | null, "covariance": 6x6 | null, "latency_ms": float, "message": str, ...}`
 with forces in N, torques in N*m (wrench convention of `docs/conventions.md`) and the
-covariance over `[fx, fy, fz, tx, ty, tz]` in those units.
+covariance over `[fx, fy, fz, tx, ty, tz]` in those units. Records of version 2 add what an
+F/T driver's records carry: `sensor_id`, `frame_id` (the ROS frame name), `seq`,
+`monotonic`, `in_contact`, `out_of_range`, `centre_of_pressure_mm`, `contact_area_mm2`,
+`filtered` and `version` (`data_schema/live_record.schema.json`; version-1 records, without
+them, still validate).
 """
 
 import dataclasses
@@ -32,11 +36,23 @@ from ._types import Real
 logger = logging.getLogger("moirejax.live")
 
 
+RECORD_VERSION = 2
+"""Version of the live record's fields (`data_schema/live_record.schema.json`)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class WrenchRecord:
     """One output record; see the module docstring for the fields and units.
 
-    `stamp` is the frame's grab time in Unix seconds; `latency_ms` runs from grab to emit.
+    `stamp` is the frame's grab time in Unix seconds (`monotonic` the same instant on the
+    monotonic clock); `latency_ms` runs from grab to emit. `seq` counts the records of a
+    stream from 0 (`frame` is the source's frame index, whose gaps are dropped frames).
+    `in_contact` is true for a tactile-mode record with a wrench; `out_of_range` flags each
+    axis whose magnitude exceeds the unit's calibrated range; `centre_of_pressure_mm` is
+    `(-ty / fz, tx / fz)` on the contact surface (mm), given while the normal force is
+    resolved; `contact_area_mm2` is the fitted contact patch's area; `filtered` says the
+    wrench went through a filter (e.g. [`WrenchFilter`][]). `pressure` is the record's
+    pressure map in Pa (rows top to bottom, not written to JSON), for sinks that draw it.
     """
 
     stamp: float
@@ -48,6 +64,23 @@ class WrenchRecord:
     covariance: tuple[tuple[float, ...], ...] | None
     latency_ms: float
     message: str = ""
+    sensor_id: str = "moirejax"
+    frame_id: str = "moirejax_sensor"
+    seq: int = 0
+    monotonic: float | None = None
+    in_contact: bool = False
+    out_of_range: tuple[bool, ...] | None = None
+    centre_of_pressure_mm: tuple[float, float] | None = None
+    contact_area_mm2: float | None = None
+    filtered: bool = False
+    pressure: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
+
+    @property
+    def wrench(self) -> np.ndarray | None:
+        """`[fx, fy, fz, tx, ty, tz]` (N, N*m), or `None` for a record without a wrench."""
+        if self.force is None or self.torque is None:
+            return None
+        return np.asarray(self.force + self.torque, np.float64)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (non-finite numbers become `null`)."""
@@ -61,13 +94,23 @@ class WrenchRecord:
             return value if math.isfinite(value) else None
 
         return {
+            "version": RECORD_VERSION,
+            "sensor_id": self.sensor_id,
+            "frame_id": self.frame_id,
+            "seq": int(self.seq),
             "stamp": clean(self.stamp),
+            "monotonic": clean(self.monotonic),
             "frame": int(self.frame),
             "mode": self.mode,
             "status": self.status,
+            "in_contact": bool(self.in_contact),
             "force": clean(self.force),
             "torque": clean(self.torque),
             "covariance": clean(self.covariance),
+            "out_of_range": None if self.out_of_range is None else [bool(v) for v in self.out_of_range],
+            "centre_of_pressure_mm": clean(self.centre_of_pressure_mm),
+            "contact_area_mm2": clean(self.contact_area_mm2),
+            "filtered": bool(self.filtered),
             "latency_ms": clean(self.latency_ms),
             "message": self.message,
         }
@@ -87,15 +130,19 @@ def make_record(
     covariance: np.ndarray | None = None,
     latency_ms: Real = 0.0,
     message: str = "",
+    **fields: Any,
 ) -> WrenchRecord:
-    """Build a [`WrenchRecord`][] from a 6-vector `[fx, fy, fz, tx, ty, tz]` and a 6x6 covariance."""
+    """Build a [`WrenchRecord`][] from a 6-vector `[fx, fy, fz, tx, ty, tz]` and a 6x6
+    covariance; further keyword arguments set the record's other fields."""
     force = torque = cov = None
     if wrench is not None:
         w = [float(v) for v in np.asarray(wrench, dtype=np.float64).reshape(6)]
         force, torque = (w[0], w[1], w[2]), (w[3], w[4], w[5])
     if covariance is not None:
         cov = tuple(tuple(float(v) for v in row) for row in np.asarray(covariance, dtype=np.float64).reshape(6, 6))
-    return WrenchRecord(float(stamp), int(frame), mode, status, force, torque, cov, float(latency_ms), message)
+    return WrenchRecord(
+        float(stamp), int(frame), mode, status, force, torque, cov, float(latency_ms), message, **fields
+    )
 
 
 @runtime_checkable

@@ -1,0 +1,346 @@
+"""A live-pipeline sink that records to MCAP with ROS 2 message encodings.
+
+MCAP is the container `ros2 bag` records to by default and Foxglove opens directly. The
+messages inside are serialised in CDR against ROS 2 message definitions that this module
+carries as text, so a recording made here plays back in ROS 2 tools although neither ROS
+nor its Python bindings are installed: only the `mcap` and `mcap-ros2-support` packages
+(the `ros` extra).
+
+Topics, under a prefix (default `/moirejax`):
+
+| topic | type | when |
+|---|---|---|
+| `{prefix}/record` | `std_msgs/msg/String` | every record, holding its JSON line |
+| `{prefix}/wrench` | `geometry_msgs/msg/WrenchStamped` | records that carry a finite wrench |
+| `{prefix}/image` | `sensor_msgs/msg/CompressedImage` | `McapSink.emit_image` (JPEG or PNG) |
+| `{prefix}/pressure` | `sensor_msgs/msg/Image` (`32FC1`, Pa) | `McapSink.emit_pressure` |
+
+The JSON on `{prefix}/record` is the same line the other sinks send, so status records,
+the covariance and the latency survive even though ROS has no message for them.
+
+The file is written under a temporary name (`path + ".part"`) and moved onto `path` only
+when the sink is closed. A run that is killed therefore never leaves a truncated file
+at `path`; what it leaves is the `.part` file, whose complete chunks `mcap recover`
+can salvage.
+"""
+
+import math
+import os
+import threading
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .._conventions import WRENCH_CONVENTION
+from ._sinks import _CountingSink, WrenchRecord
+
+
+_SEPARATOR = "=" * 80 + "\n"
+
+
+def _concat_msgdefs(main: str, *dependencies: tuple[str, str]) -> str:
+    # A schema is the main definition followed by each type it uses, each introduced by a
+    # separator line and a `MSG: pkg/Name` line: the layout rosbag2 writes and mcap_ros2 parses.
+    parts = [main]
+    for name, text in dependencies:
+        parts.append(f"{_SEPARATOR}MSG: {name}\n{text}")
+    return "".join(parts)
+
+
+_TIME_MSG = "int32 sec\nuint32 nanosec\n"
+_HEADER_MSG = "builtin_interfaces/Time stamp\nstring frame_id\n"
+_VECTOR3_MSG = "float64 x\nfloat64 y\nfloat64 z\n"
+_WRENCH_MSG = "geometry_msgs/Vector3 force\ngeometry_msgs/Vector3 torque\n"
+
+STRING_MSGDEF = "string data\n"
+"""ROS 2 definition of `std_msgs/msg/String`."""
+
+WRENCH_STAMPED_MSGDEF = _concat_msgdefs(
+    "std_msgs/Header header\ngeometry_msgs/Wrench wrench\n",
+    ("std_msgs/Header", _HEADER_MSG),
+    ("builtin_interfaces/Time", _TIME_MSG),
+    ("geometry_msgs/Wrench", _WRENCH_MSG),
+    ("geometry_msgs/Vector3", _VECTOR3_MSG),
+)
+"""ROS 2 definition of `geometry_msgs/msg/WrenchStamped`, with the types it uses appended."""
+
+COMPRESSED_IMAGE_MSGDEF = _concat_msgdefs(
+    "std_msgs/Header header\nstring format\nuint8[] data\n",
+    ("std_msgs/Header", _HEADER_MSG),
+    ("builtin_interfaces/Time", _TIME_MSG),
+)
+"""ROS 2 definition of `sensor_msgs/msg/CompressedImage`, with the types it uses appended."""
+
+IMAGE_MSGDEF = _concat_msgdefs(
+    "std_msgs/Header header\n"
+    "uint32 height\n"
+    "uint32 width\n"
+    "string encoding\n"
+    "uint8 is_bigendian\n"
+    "uint32 step\n"
+    "uint8[] data\n",
+    ("std_msgs/Header", _HEADER_MSG),
+    ("builtin_interfaces/Time", _TIME_MSG),
+)
+"""ROS 2 definition of `sensor_msgs/msg/Image`, with the types it uses appended."""
+
+_MSGDEFS = {
+    "std_msgs/msg/String": STRING_MSGDEF,
+    "geometry_msgs/msg/WrenchStamped": WRENCH_STAMPED_MSGDEF,
+    "sensor_msgs/msg/CompressedImage": COMPRESSED_IMAGE_MSGDEF,
+    "sensor_msgs/msg/Image": IMAGE_MSGDEF,
+}
+
+_IMAGE_FORMATS = ("jpeg", "png")
+
+
+def _stamp_ns(stamp: Any) -> int | None:
+    """Unix seconds to integer nanoseconds, or None if the stamp is missing, not finite or negative."""
+    try:
+        seconds = float(stamp)
+    except (TypeError, ValueError):
+        return None
+    if not math.isfinite(seconds) or seconds < 0:
+        return None
+    # Split before scaling: the whole seconds and the fraction are each exact in float64,
+    # so the nanoseconds are the fraction's own rounding, not that of a 1e18-sized product.
+    whole = math.floor(seconds)
+    return whole * 1_000_000_000 + round((seconds - whole) * 1e9)
+
+
+def _as_uint8(image: np.ndarray) -> np.ndarray:
+    arr = np.asarray(image)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    if arr.ndim == 3:
+        arr = arr[..., :3]
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
+        raise ValueError(f"image must be (h, w) gray or (h, w, 3) BGR, got shape {np.shape(image)}")
+    if arr.dtype != np.uint8:
+        arr = (np.clip(np.nan_to_num(arr.astype(np.float32)), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+    return np.ascontiguousarray(arr)
+
+
+class McapSink(_CountingSink):
+    """Records to an MCAP file with ROS 2 (CDR) messages, for Foxglove and `ros2 bag`.
+
+    See the module docstring for the topics. A `WrenchStamped` carries the record's wrench
+    in the project's convention (`docs/conventions.md`): forces in N and torques in N·m,
+    x along the image columns to the right, y up the image (row 0 is the top), z into the
+    sensor surface (pressing is +Fz), torques about the image centre on the contact
+    surface. The convention is also stored word for word in the file's `moirejax`
+    metadata record. Header stamps, and the MCAP log and publish times, are the record's
+    `stamp` (its frame's grab time); a record without a usable stamp gets the time it is
+    written.
+
+    Like the other sinks, writing never raises: failures are counted in
+    `stats["errors"]` and logged once. `stats["sent"]` counts records, `stats["images"]`
+    and `stats["pressure_maps"]` the frames written by [`emit_image`][McapSink.emit_image]
+    and [`emit_pressure`][McapSink.emit_pressure]. The methods may be called from
+    different threads.
+
+    The file only appears at `path` once [`close`][McapSink.close] has finished it; until
+    then it is `path + ".part"`.
+
+    **Arguments:**
+
+    - `path`: the MCAP file to write (`.mcap`). An existing file there is replaced at
+        close.
+    - `frame_id`: `header.frame_id` of every message, unless the record has a
+        `frame_id` attribute of its own.
+    - `topic_prefix`: namespace of the topics.
+    - `images`: whether [`emit_image`][McapSink.emit_image] writes anything.
+    - `image_format`: `"jpeg"` or `"png"` (lossless, larger).
+    - `jpeg_quality`: 0 to 100.
+
+    **Raises:** `ImportError` without the `ros` extra; `ValueError` for a bad option or a
+    missing folder; `OSError` if the folder is not writable; `FileExistsError` if a
+    `.part` file from an earlier run is in the way (recover or delete it first).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        frame_id: str = "moirejax_sensor",
+        topic_prefix: str = "/moirejax",
+        images: bool = True,
+        image_format: str = "jpeg",
+        jpeg_quality: int = 90,
+    ):
+        super().__init__()
+        self.stats.update(images=0, pressure_maps=0)
+        try:
+            from mcap_ros2.writer import Writer
+        except ImportError as e:
+            raise ImportError("McapSink needs the `ros` extra: pip install 'moirejax[ros]'") from e
+        if image_format not in _IMAGE_FORMATS:
+            raise ValueError(f"image_format must be one of {_IMAGE_FORMATS}, got {image_format!r}")
+        if not 0 <= jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be in [0, 100], got {jpeg_quality}")
+        self.path = os.fspath(path)
+        self.part_path = self.path + ".part"
+        self.frame_id = frame_id
+        self.topic_prefix = "/" + topic_prefix.strip("/") if topic_prefix.strip("/") else ""
+        self.images = images
+        self.image_format = image_format
+        self.jpeg_quality = int(jpeg_quality)
+
+        folder = os.path.dirname(os.path.abspath(self.path))
+        if not os.path.isdir(folder):
+            raise ValueError(f"cannot record to {self.path}: folder {folder} does not exist or is not a folder")
+        if os.path.isdir(self.path):
+            raise ValueError(f"cannot record to {self.path}: it is a directory")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise PermissionError(f"cannot record to {self.path}: folder {folder} is not writable")
+        try:
+            # "x": never truncate a `.part` an interrupted run left behind, nor one another
+            # sink is writing right now.
+            self._stream: Any = open(self.part_path, "xb")
+        except FileExistsError as e:
+            raise FileExistsError(
+                f"cannot record to {self.path}: {self.part_path} exists (left by an interrupted run? "
+                "salvage it with `mcap recover` or delete it)"
+            ) from e
+        except OSError as e:
+            raise OSError(f"cannot record to {self.path}: {e.strerror or e}") from e
+        try:
+            self._writer: Any = Writer(self._stream)
+            self._writer.add_metadata("moirejax", {"wrench_convention": WRENCH_CONVENTION, "frame_id": self.frame_id})
+            # The magic, header and metadata on disk now: a `.part` is a recognisable MCAP
+            # file from the start. Messages follow a chunk (1 MiB) at a time.
+            self._stream.flush()
+        except Exception:
+            self._stream.close()
+            os.remove(self.part_path)
+            raise
+        self._schemas: dict[str, Any] = {}
+        self._lock = threading.Lock()
+
+    # -- writing ----------------------------------------------------------------------
+
+    def _write(self, topic: str, datatype: str, message: dict[str, Any], log_time: int) -> None:
+        # Call with the lock held and the writer open.
+        schema = self._schemas.get(datatype)
+        if schema is None:
+            schema = self._schemas[datatype] = self._writer.register_msgdef(datatype, _MSGDEFS[datatype])
+        self._writer.write_message(self.topic_prefix + topic, schema, message, log_time=log_time, publish_time=log_time)
+
+    def _header(self, record: WrenchRecord) -> tuple[dict[str, Any], int]:
+        ns = _stamp_ns(record.stamp)
+        if ns is None:
+            ns = time.time_ns()
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        frame_id = getattr(record, "frame_id", None) or self.frame_id
+        return {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": frame_id}, ns
+
+    def emit(self, record: WrenchRecord) -> None:
+        """Write a record: its JSON on `{prefix}/record`, its wrench (if any) on `{prefix}/wrench`.
+
+        **Arguments:**
+
+        - `record`: the record; a wrench is written when `force` and `torque` are both
+            present and finite.
+        """
+        with self._lock:
+            if self._writer is None:
+                self._failed("errors", ValueError("sink is closed"))
+                return
+            try:
+                header, ns = self._header(record)
+                self._write("/record", "std_msgs/msg/String", {"data": record.to_json()}, ns)
+                if record.force is not None and record.torque is not None:
+                    force = [float(v) for v in record.force]
+                    torque = [float(v) for v in record.torque]
+                    if all(math.isfinite(v) for v in force + torque):
+                        wrench = {
+                            "force": dict(zip("xyz", force)),
+                            "torque": dict(zip("xyz", torque)),
+                        }
+                        self._write(
+                            "/wrench", "geometry_msgs/msg/WrenchStamped", {"header": header, "wrench": wrench}, ns
+                        )
+                self.stats["sent"] += 1
+            except Exception as e:
+                self._failed("errors", e)
+
+    def emit_image(self, image: np.ndarray, record: WrenchRecord) -> None:
+        """Write a camera frame on `{prefix}/image` as JPEG or PNG (nothing if `images=False`).
+
+        **Arguments:**
+
+        - `image`: `(h, w)` gray or `(h, w, 3)` BGR, `uint8` or float in [0, 1].
+        - `record`: the frame's record, for the stamp and frame id.
+        """
+        if not self.images:
+            return
+        with self._lock:
+            if self._writer is None:
+                self._failed("errors", ValueError("sink is closed"))
+                return
+            try:
+                header, ns = self._header(record)
+                if self.image_format == "jpeg":
+                    params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality]
+                else:
+                    params = []
+                ok, encoded = cv2.imencode(
+                    "." + ("jpg" if self.image_format == "jpeg" else "png"), _as_uint8(image), params
+                )
+                if not ok:
+                    raise ValueError(f"cv2.imencode could not encode a {np.shape(image)} frame as {self.image_format}")
+                message = {"header": header, "format": self.image_format, "data": encoded.tobytes()}
+                self._write("/image", "sensor_msgs/msg/CompressedImage", message, ns)
+                self.stats["images"] += 1
+            except Exception as e:
+                self._failed("errors", e)
+
+    def emit_pressure(self, pressure: np.ndarray, record: WrenchRecord) -> None:
+        """Write a pressure map on `{prefix}/pressure` as a `32FC1` image in Pa.
+
+        **Arguments:**
+
+        - `pressure`: `(h, w)` pressure in Pa on the rectified image grid, row 0 at the top.
+        - `record`: the frame's record, for the stamp and frame id.
+        """
+        with self._lock:
+            if self._writer is None:
+                self._failed("errors", ValueError("sink is closed"))
+                return
+            try:
+                header, ns = self._header(record)
+                arr = np.ascontiguousarray(np.asarray(pressure), dtype="<f4")
+                if arr.ndim != 2:
+                    raise ValueError(f"pressure map must be 2-D, got shape {arr.shape}")
+                h, w = arr.shape
+                message = {
+                    "header": header,
+                    "height": h,
+                    "width": w,
+                    "encoding": "32FC1",
+                    "is_bigendian": 0,
+                    "step": 4 * w,
+                    "data": arr.tobytes(),
+                }
+                self._write("/pressure", "sensor_msgs/msg/Image", message, ns)
+                self.stats["pressure_maps"] += 1
+            except Exception as e:
+                self._failed("errors", e)
+
+    def close(self) -> None:
+        """Finish the MCAP file and move it from `path + ".part"` onto `path`; idempotent.
+
+        **Raises:** `OSError` if the file cannot be finished or moved; the `.part` file is
+        then left in place and the sink is closed all the same.
+        """
+        with self._lock:
+            writer, self._writer = self._writer, None
+            if writer is None:
+                return
+            try:
+                writer.finish()
+            finally:
+                self._stream.close()
+            os.replace(self.part_path, self.path)

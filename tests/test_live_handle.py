@@ -1,0 +1,273 @@
+"""The in-process sensor handle on a simulated unit: records while the caller's loop runs,
+a tare that removes a drift of the gratings, a camera that disappears and comes back, MCAP
+output; and the record stream's filter and centre of pressure against their definitions."""
+
+import threading
+import time
+
+import equinox as eqx
+import jax.random as jr
+import numpy as np
+import pytest
+
+import moirejax as mj
+from moirejax._conventions import WRENCH_SCALE
+from moirejax._fileio import validate_json
+from moirejax.live import (
+    CallableSource,
+    make_record,
+    McapSink,
+    Reconnect,
+    RecordStream,
+    SimulatedSensor,
+    WrenchFilter,
+)
+from moirejax.physics import Contact
+from moirejax.simulate import Simulator
+
+from .test_live_mcap import read
+
+
+# A small field (32 mm at 8 px/mm) so that the handle compiles in seconds.
+DEVICE = mj.preset("mid", height=256, width=256, px_per_mm=8.0)
+# A press centred at (1, -2) mm: its moments about the origin are Tx = y Fz, Ty = -x Fz.
+CONTACT = Contact(x0=1.0, y0=-2.0, radius=3.0)
+PRESS = np.array([0.05, -0.03, 0.6, -2e-3 * 0.6, -1e-3 * 0.6, 0.0])
+# Frame indices of the session: gate warm-up, a press on the unit as it was when its
+# reference was taken (from FIRST), the drift of the upper grating (from DRIFT), a press on
+# the drifted unit (PRESSED to RELEASED), the camera unplugged (at UNPLUG, for a few grabs).
+FIRST, DRIFT, PRESSED, RELEASED, UNPLUG = 20, 60, 460, 480, 520
+PRESS_FRAMES = 20
+# The upper grating slides by 0.3 rad of its phase (a few micrometres, as a holder's
+# thermal expansion does), slowly enough that the gate takes it for drift.
+DRIFT_PHASE = 0.3
+
+
+class Rig:
+    """Frames of a simulated unit by index (see the constants); after the test sets
+    `tared`, a second press of `PRESS_FRAMES` frames."""
+
+    def __init__(self, device):
+        self.device = device
+        self.nominal = SimulatedSensor(device)
+        self.unplugged_grabs = 0
+        self.tared = threading.Event()
+        self.second_press: int | None = None
+
+    def __call__(self, index):
+        if index == UNPLUG and self.unplugged_grabs < 3:
+            self.unplugged_grabs += 1
+            return None
+        drift = DRIFT_PHASE * float(np.clip((index - DRIFT) / (PRESSED - DRIFT), 0.0, 1.0))
+        pressed = FIRST <= index < FIRST + PRESS_FRAMES or PRESSED <= index < RELEASED
+        if index >= UNPLUG and self.tared.is_set():
+            self.second_press = index if self.second_press is None else self.second_press
+            pressed = index < self.second_press + PRESS_FRAMES
+        elif index >= UNPLUG + 40 and not self.tared.is_set():
+            time.sleep(0.05)  # hold the camera back until the tare is done
+        unit = eqx.tree_at(lambda d: d.optics.phase2, self.device, self.device.optics.phase2 + drift)
+        wrench, contact = (PRESS, CONTACT) if pressed else (np.zeros(6), Contact())
+        return np.asarray(Simulator(unit, fidelity="model").frame(jr.PRNGKey(index), wrench, contact), np.float32)
+
+
+def wait_until(predicate, timeout=120.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """One handle through a whole session (see `Rig`): its records, MCAP file and counters."""
+    folder = tmp_path_factory.mktemp("handle")
+    rig = Rig(DEVICE)
+    reconnect = Reconnect(max_attempts=8, initial_delay_s=0.05, max_delay_s=0.2)
+    source = CallableSource(rig, live=True, latest=False, reconnect=reconnect)
+    mcap = McapSink(folder / "session.mcap")
+    seen: list = []
+    handle = mj.open_sensor(
+        DEVICE, source, reference=rig.nominal.reference_frame(), sinks=[mcap], sensor_id="left", frame_id="left_pad"
+    )
+    handle.on_record(seen.append)
+    handle.on_record(lambda record: 1 / 0)  # a broken callback must not stop the stream
+    out: dict = {"handle": handle, "seen": seen, "mcap": folder / "session.mcap"}
+    records: list = []
+    reader = threading.Thread(target=lambda: records.extend(handle), daemon=True)
+    reader.start()
+    try:
+        assert wait_until(lambda: handle.mode == "tactile" and handle.latest().frame >= PRESSED)
+        out["refused"] = pytest.raises(RuntimeError, handle.tare)
+        assert wait_until(lambda: handle.latest().frame >= UNPLUG + 10 and handle.mode == "vision")
+        compiled = handle._processor.step._compiled
+        out["programs_before"] = compiled._cache_size()
+        handle.tare(frames=5)
+        rig.tared.set()
+        assert wait_until(lambda: rig.second_press is not None and handle.latest().frame > rig.second_press + 30)
+        out["programs_after"] = handle._processor.step._compiled._cache_size()
+        out["same_program"] = handle._processor.step._compiled is compiled
+        out["second_press"] = rig.second_press
+    finally:
+        handle.close()
+        mcap.close()
+        reader.join(10)
+    out["records"] = records
+    return out
+
+
+def test_a_tare_removes_a_drift_of_the_gratings(session):
+    records, second = session["records"], session["second_press"]
+    first = [r for r in records if FIRST + 5 <= r.frame < FIRST + PRESS_FRAMES and r.in_contact]
+    before = [r for r in records if PRESSED <= r.frame < RELEASED and r.mode == "tactile"]
+    after = [r for r in records if second + 5 <= r.frame < second + PRESS_FRAMES and r.in_contact]
+    assert len(first) > 5 and len(before) > 5 and len(after) > 5
+    # What the unit read before it drifted: the model's own error on this load, on every axis.
+    undrifted = np.mean([r.wrench for r in first], axis=0)
+
+    def as_before_the_drift(r):
+        return r.status == "converged" and np.all(np.abs(r.wrench - undrifted) < 0.1 * WRENCH_SCALE)
+
+    # Against the old reference the drift ruins every reading (a wrong load or a fit the
+    # model cannot explain); after the tare the unit reads what it read before the drift, to
+    # a tenth of each range (the drifted unit is not the same unit: its fringes sit elsewhere).
+    assert not any(as_before_the_drift(r) for r in before), [(r.status, r.wrench) for r in before]
+    assert all(as_before_the_drift(r) for r in after), ([(r.status, r.wrench) for r in after], undrifted)
+    assert np.all(np.abs(undrifted - PRESS) < 0.25 * WRENCH_SCALE), undrifted
+
+
+def test_a_tare_is_refused_in_contact_and_reuses_the_compiled_inversion(session):
+    assert "in contact" in str(session["refused"].value)
+    assert session["handle"].bias.tolist() == [0.0] * 6
+    # The new reference went into the same compiled step: one program before and after.
+    assert session["same_program"] and session["programs_before"] == session["programs_after"] == 1
+
+
+def test_records_carry_what_a_driver_record_carries(session):
+    records = session["records"]
+    seqs = [r.seq for r in records]
+    assert seqs == list(range(len(records)))  # the iterator missed none, in order
+    assert session["seen"] == records  # and callbacks saw the same, despite a failing one
+    assert session["handle"].callback_errors == len(records)
+    for r in records:
+        assert (r.sensor_id, r.frame_id) == ("left", "left_pad")
+        validate_json(r.to_dict(), "live_record")
+    second = session["second_press"]
+    pressed = [r for r in records if second <= r.frame < second + PRESS_FRAMES and r.in_contact]
+    assert pressed
+    for r in pressed:
+        assert r.in_contact and r.out_of_range == (False,) * 6
+        # A centred-on-the-patch normal load: the centre of pressure is the patch's centre.
+        x, y = r.centre_of_pressure_mm
+        assert abs(x - float(CONTACT.x0)) < 0.5 and abs(y - float(CONTACT.y0)) < 0.5
+        assert r.contact_area_mm2 == pytest.approx(np.pi * float(CONTACT.radius) ** 2, rel=0.3)
+        assert r.pressure is not None and r.pressure.shape == (64, 64)
+        assert r.monotonic is not None and r.stamp - r.monotonic > 1e6
+    statuses = {r.status for r in records}
+    assert {"reconnecting", "reconnected"} <= statuses, statuses
+
+
+def test_the_mcap_file_holds_every_record_and_wrench(session):
+    records = session["records"]
+    wrenches = read(session["mcap"], "/moirejax/wrench")
+    strings = read(session["mcap"], "/moirejax/record")
+    pressure = read(session["mcap"], "/moirejax/pressure")
+    assert len(strings) == len(records)
+    with_wrench = [r for r in records if r.force is not None]
+    assert len(wrenches) == len(with_wrench)
+    last = wrenches[-1].ros_msg
+    assert last.header.frame_id == "left_pad"
+    assert [last.wrench.force.x, last.wrench.force.y, last.wrench.force.z] == list(with_wrench[-1].force)
+    assert len(pressure) == sum(r.pressure is not None for r in records) > 0
+
+
+# ----------------------------------------------------------------------------------------
+# The record stream and the filter, against their definitions.
+
+
+def test_centre_of_pressure_of_a_point_load():
+    stream = RecordStream()
+    x, y, fz = 2.5e-3, -1.5e-3, 0.8  # m, m, N
+    wrench = np.array([0.0, 0.0, fz, y * fz, -x * fz, 0.0])  # Tx = y Fz, Ty = -x Fz
+    record = stream.finish(make_record(stamp=0.0, frame=0, mode="tactile", status="converged", wrench=wrench))
+    assert record.centre_of_pressure_mm == pytest.approx((2.5, -1.5))
+    assert record.out_of_range == (False,) * 6
+    loud = stream.finish(make_record(stamp=0.0, frame=1, mode="tactile", status="converged", wrench=wrench * 2))
+    assert loud.out_of_range == (False, False, True, False, False, False)
+    assert loud.seq == 1
+    # No resolved normal force, no centre of pressure; no wrench, no contact.
+    light = stream.finish(make_record(stamp=0.0, frame=2, mode="tactile", status="converged", wrench=wrench * 1e-3))
+    assert light.centre_of_pressure_mm is None
+    idle = stream.finish(make_record(stamp=0.0, frame=3, mode="vision", status="no_contact", wrench=np.zeros(6)))
+    assert not idle.in_contact and idle.out_of_range is None
+
+
+def test_bias_is_subtracted_from_in_contact_wrenches_only():
+    stream = RecordStream()
+    stream.set_bias(np.array([0.01, 0.0, 0.1, 0.0, 0.0, 0.0]))
+    touched = stream.finish(make_record(stamp=0, frame=0, mode="tactile", status="converged", wrench=np.full(6, 0.5)))
+    assert touched.force == pytest.approx((0.49, 0.5, 0.4))
+    idle = stream.finish(make_record(stamp=0, frame=1, mode="vision", status="no_contact", wrench=np.zeros(6)))
+    assert idle.force == (0.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        stream.set_bias(np.full(6, np.nan))
+
+
+def test_filter_of_a_still_load_is_the_precision_weighted_mean():
+    """With no load change allowed, the Kalman filter is the information-weighted mean of the frames."""
+    rng = np.random.default_rng(0)
+    f = WrenchFilter(process_noise=1e-9)
+    truth = np.array([0.05, -0.02, 0.7, 0.001, -0.002, 0.0005])
+    information, weighted = np.zeros((6, 6)), np.zeros(6)
+    for _ in range(30):
+        a = rng.normal(size=(6, 6)) * 0.01
+        cov = a @ a.T + np.diag(rng.uniform(1e-5, 1e-3, 6))
+        z = rng.multivariate_normal(truth, cov)
+        mean, covariance = f.update(z, cov)
+        information += np.linalg.inv(cov)
+        weighted += np.linalg.solve(cov, z)
+    np.testing.assert_allclose(mean, np.linalg.solve(information, weighted), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(covariance, np.linalg.inv(information), rtol=1e-5, atol=1e-12)
+
+
+def test_filter_follows_a_step_in_a_few_frames_and_restarts_on_release():
+    stream = RecordStream(filter=WrenchFilter(process_noise=0.05))
+    cov = np.diag((0.02 * WRENCH_SCALE) ** 2)
+
+    def frame(i, wrench, mode="tactile", status="converged"):
+        return stream.finish(make_record(stamp=i, frame=i, mode=mode, status=status, wrench=wrench, covariance=cov))
+
+    low, high = np.array([0, 0, 0.2, 0, 0, 0.0]), np.array([0, 0, 1.0, 0, 0, 0.0])
+    for i in range(10):
+        record = frame(i, low)
+    assert record.filtered and record.force[2] == pytest.approx(0.2)
+    settled = [frame(10 + i, high).force[2] for i in range(6)]
+    assert 0.2 < settled[0] < 1.0 and settled[-1] == pytest.approx(1.0, abs=0.02)
+    frame(20, np.zeros(6), mode="vision", status="no_contact")
+    assert frame(21, low).force[2] == pytest.approx(0.2)  # a new contact starts afresh
+
+
+def test_filter_refuses_a_non_positive_process_noise():
+    with pytest.raises(ValueError, match="process_noise"):
+        WrenchFilter(process_noise=0.0)
+
+
+def test_version_one_records_still_validate():
+    old = {
+        "stamp": 1.0,
+        "frame": 0,
+        "mode": "tactile",
+        "status": "converged",
+        "force": [0.0, 0.0, 0.5],
+        "torque": [0.0, 0.0, 0.0],
+        "covariance": None,
+        "latency_ms": 3.0,
+        "message": "",
+    }
+    validate_json(old, "live_record")
+
+
+def test_a_source_object_needs_a_reference():
+    with pytest.raises(ValueError, match="reference="):
+        mj.live.SensorHandle(DEVICE, CallableSource(lambda i: None))
