@@ -2,6 +2,7 @@
 a tare that removes a drift of the gratings, a camera that disappears and comes back, MCAP
 output; and the record stream's filter and centre of pressure against their definitions."""
 
+import json
 import threading
 import time
 
@@ -26,6 +27,10 @@ from moirejax.physics import Contact
 from moirejax.simulate import Simulator
 
 from .test_live_mcap import read
+
+
+# The session fixture is built once, on one worker.
+pytestmark = pytest.mark.xdist_group("live_handle")
 
 
 # A small field (32 mm at 8 px/mm) so that the handle compiles in seconds.
@@ -271,3 +276,22 @@ def test_version_one_records_still_validate():
 def test_a_source_object_needs_a_reference():
     with pytest.raises(ValueError, match="reference="):
         mj.live.SensorHandle(DEVICE, CallableSource(lambda i: None))
+
+
+def test_live_command_writes_filtered_named_records_and_mcap(tmp_path):
+    from moirejax.cli import main
+    from moirejax.physics._device import device_to_json
+
+    mj.write_json(tmp_path / "unit.json", device_to_json(DEVICE))
+    out, mcap = tmp_path / "records.jsonl", tmp_path / "run.mcap"
+    args = ["live", "--device", str(tmp_path / "unit.json"), "--max-frames", "40", "--sink", str(out)]
+    args += ["--mcap", str(mcap), "--filter", "kalman", "--sensor-id", "right", "--frame-id", "right_pad"]
+    assert main(args) == 0
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(records) == 40 and {r["sensor_id"] for r in records} == {"right"}
+    touched = [r for r in records if r["in_contact"]]
+    assert touched and all(r["filtered"] for r in touched)
+    assert len(read(mcap, "/moirejax/record")) == 40
+    assert {m.ros_msg.header.frame_id for m in read(mcap, "/moirejax/wrench")} == {"right_pad"}
+    assert len(read(mcap, "/moirejax/pressure")) == len(touched)
+    assert not (tmp_path / "run.mcap.part").exists()
