@@ -28,6 +28,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import cv2
@@ -236,6 +237,17 @@ class McapSink(_CountingSink):
         frame_id = getattr(record, "frame_id", None) or self.frame_id
         return {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": frame_id}, ns
 
+    def _guarded(self, write: Callable[[], None]) -> None:
+        """Run `write` under the lock; a closed sink or a failure is counted, never raised."""
+        with self._lock:
+            if self._writer is None:
+                self._failed("errors", ValueError("sink is closed"))
+                return
+            try:
+                write()
+            except Exception as e:
+                self._failed("errors", e)
+
     def emit(self, record: WrenchRecord) -> None:
         """Write a record: its JSON on `{prefix}/record`, its wrench (if any) on `{prefix}/wrench`.
 
@@ -244,27 +256,22 @@ class McapSink(_CountingSink):
         - `record`: the record; a wrench is written when `force` and `torque` are both
             present and finite.
         """
-        with self._lock:
-            if self._writer is None:
-                self._failed("errors", ValueError("sink is closed"))
-                return
-            try:
-                header, ns = self._header(record)
-                self._write("/record", "std_msgs/msg/String", {"data": record.to_json()}, ns)
-                if record.force is not None and record.torque is not None:
-                    force = [float(v) for v in record.force]
-                    torque = [float(v) for v in record.torque]
-                    if all(math.isfinite(v) for v in force + torque):
-                        wrench = {
-                            "force": dict(zip("xyz", force)),
-                            "torque": dict(zip("xyz", torque)),
-                        }
-                        self._write(
-                            "/wrench", "geometry_msgs/msg/WrenchStamped", {"header": header, "wrench": wrench}, ns
-                        )
-                self.stats["sent"] += 1
-            except Exception as e:
-                self._failed("errors", e)
+
+        def write() -> None:
+            header, ns = self._header(record)
+            self._write("/record", "std_msgs/msg/String", {"data": record.to_json()}, ns)
+            if record.force is not None and record.torque is not None:
+                force = [float(v) for v in record.force]
+                torque = [float(v) for v in record.torque]
+                if all(math.isfinite(v) for v in force + torque):
+                    wrench = {
+                        "force": dict(zip("xyz", force)),
+                        "torque": dict(zip("xyz", torque)),
+                    }
+                    self._write("/wrench", "geometry_msgs/msg/WrenchStamped", {"header": header, "wrench": wrench}, ns)
+            self.stats["sent"] += 1
+
+        self._guarded(write)
 
     def emit_image(self, image: np.ndarray, record: WrenchRecord) -> None:
         """Write a camera frame on `{prefix}/image` as JPEG or PNG (nothing if `images=False`).
@@ -276,26 +283,23 @@ class McapSink(_CountingSink):
         """
         if not self.images:
             return
-        with self._lock:
-            if self._writer is None:
-                self._failed("errors", ValueError("sink is closed"))
-                return
-            try:
-                header, ns = self._header(record)
-                if self.image_format == "jpeg":
-                    params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality]
-                else:
-                    params = []
-                ok, encoded = cv2.imencode(
-                    "." + ("jpg" if self.image_format == "jpeg" else "png"), _as_uint8(image), params
-                )
-                if not ok:
-                    raise ValueError(f"cv2.imencode could not encode a {np.shape(image)} frame as {self.image_format}")
-                message = {"header": header, "format": self.image_format, "data": encoded.tobytes()}
-                self._write("/image", "sensor_msgs/msg/CompressedImage", message, ns)
-                self.stats["images"] += 1
-            except Exception as e:
-                self._failed("errors", e)
+
+        def write() -> None:
+            header, ns = self._header(record)
+            if self.image_format == "jpeg":
+                params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality]
+            else:
+                params = []
+            ok, encoded = cv2.imencode(
+                "." + ("jpg" if self.image_format == "jpeg" else "png"), _as_uint8(image), params
+            )
+            if not ok:
+                raise ValueError(f"cv2.imencode could not encode a {np.shape(image)} frame as {self.image_format}")
+            message = {"header": header, "format": self.image_format, "data": encoded.tobytes()}
+            self._write("/image", "sensor_msgs/msg/CompressedImage", message, ns)
+            self.stats["images"] += 1
+
+        self._guarded(write)
 
     def emit_pressure(self, pressure: np.ndarray, record: WrenchRecord) -> None:
         """Write a pressure map on `{prefix}/pressure` as a `32FC1` image in Pa.
@@ -305,29 +309,26 @@ class McapSink(_CountingSink):
         - `pressure`: `(h, w)` pressure in Pa on the rectified image grid, row 0 at the top.
         - `record`: the frame's record, for the stamp and frame id.
         """
-        with self._lock:
-            if self._writer is None:
-                self._failed("errors", ValueError("sink is closed"))
-                return
-            try:
-                header, ns = self._header(record)
-                arr = np.ascontiguousarray(np.asarray(pressure), dtype="<f4")
-                if arr.ndim != 2:
-                    raise ValueError(f"pressure map must be 2-D, got shape {arr.shape}")
-                h, w = arr.shape
-                message = {
-                    "header": header,
-                    "height": h,
-                    "width": w,
-                    "encoding": "32FC1",
-                    "is_bigendian": 0,
-                    "step": 4 * w,
-                    "data": arr.tobytes(),
-                }
-                self._write("/pressure", "sensor_msgs/msg/Image", message, ns)
-                self.stats["pressure_maps"] += 1
-            except Exception as e:
-                self._failed("errors", e)
+
+        def write() -> None:
+            header, ns = self._header(record)
+            arr = np.ascontiguousarray(np.asarray(pressure), dtype="<f4")
+            if arr.ndim != 2:
+                raise ValueError(f"pressure map must be 2-D, got shape {arr.shape}")
+            h, w = arr.shape
+            message = {
+                "header": header,
+                "height": h,
+                "width": w,
+                "encoding": "32FC1",
+                "is_bigendian": 0,
+                "step": 4 * w,
+                "data": arr.tobytes(),
+            }
+            self._write("/pressure", "sensor_msgs/msg/Image", message, ns)
+            self.stats["pressure_maps"] += 1
+
+        self._guarded(write)
 
     def close(self) -> None:
         """Finish the MCAP file and move it from `path + ".part"` onto `path`; idempotent.
