@@ -118,11 +118,11 @@ def test_wrench_cdr_layout_by_hand(tmp_path):
 def test_frame_id_prefix_and_metadata(tmp_path):
     path = tmp_path / "tagged.mcap"
     base = record()
-    with McapSink(path, topic_prefix="robot1/moire/", frame_id="default_frame") as sink:
-        sink.emit(with_frame_id(base, "left_finger"))  # the record's own frame wins
-        sink.emit(with_frame_id(base, ""))  # none: the sink's
+    with McapSink(path, topic_prefix="robot1/moire/") as sink:
+        sink.emit(with_frame_id(base, "left_finger"))  # each record's own frame
+        sink.emit(with_frame_id(base, "right_finger"))
     wrenches = read(path, "/robot1/moire/wrench")
-    assert [m.ros_msg.header.frame_id for m in wrenches] == ["left_finger", "default_frame"]
+    assert [m.ros_msg.header.frame_id for m in wrenches] == ["left_finger", "right_finger"]
     assert len(read(path, "/robot1/moire/record")) == 2
     with open(path, "rb") as f:
         (meta,) = [m for m in make_reader(f).iter_metadata() if m.name == "moirejax"]

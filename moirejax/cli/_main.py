@@ -305,7 +305,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
         check_output_file(args.mcap, argument="mcap")
     sinks = [parse_sink(spec) for spec in (args.sink or ["-"])]
     if args.mcap:
-        sinks.append(McapSink(args.mcap, frame_id=args.frame_id))
+        sinks.append(McapSink(args.mcap))
     records = RecordStream(
         sensor_id=args.sensor_id,
         frame_id=args.frame_id,

@@ -353,7 +353,7 @@ class SensorHandle:
             raise RuntimeError(self._tare_failed)
         if not taken or len(taken) < frames:
             raise RuntimeError("the sensor loop ended before the tare's frames were taken")
-        reference = np.mean(np.stack(taken), axis=0)
+        reference = np.mean(np.stack(taken), axis=0, dtype=np.float64)
         # On the worker, after any drift update already queued: one reference at a time.
         self._worker.submit(self._apply_reference, reference).result()
         self._tared_reference = reference
@@ -380,7 +380,7 @@ class SensorHandle:
 
     def _on_untouched(self, frame: Frame) -> str | None:
         """The vision-mode hook: frames for a tare, the drift average, the colour probe."""
-        gray = np.asarray(frame.gray, np.float64)
+        gray = frame.gray  # float32; the averages below are float64
         with self._lock:
             if self._tare_frames is not None and len(self._tare_frames) < self._tare_wanted:
                 self._tare_frames.append(gray)

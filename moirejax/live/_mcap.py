@@ -149,8 +149,6 @@ class McapSink(_CountingSink):
 
     - `path`: the MCAP file to write (`.mcap`). An existing file there is replaced at
         close.
-    - `frame_id`: `header.frame_id` of every message, unless the record has a
-        `frame_id` attribute of its own.
     - `topic_prefix`: namespace of the topics.
     - `images`: whether [`emit_image`][McapSink.emit_image] writes anything.
     - `image_format`: `"jpeg"` or `"png"` (lossless, larger).
@@ -165,7 +163,6 @@ class McapSink(_CountingSink):
         self,
         path: str | os.PathLike,
         *,
-        frame_id: str = "moirejax_sensor",
         topic_prefix: str = "/moirejax",
         images: bool = True,
         image_format: str = "jpeg",
@@ -183,7 +180,6 @@ class McapSink(_CountingSink):
             raise ValueError(f"jpeg_quality must be in [0, 100], got {jpeg_quality}")
         self.path = os.fspath(path)
         self.part_path = self.path + ".part"
-        self.frame_id = frame_id
         self.topic_prefix = "/" + topic_prefix.strip("/") if topic_prefix.strip("/") else ""
         self.images = images
         self.image_format = image_format
@@ -209,7 +205,7 @@ class McapSink(_CountingSink):
             raise OSError(f"cannot record to {self.path}: {e.strerror or e}") from e
         try:
             self._writer: Any = Writer(self._stream)
-            self._writer.add_metadata("moirejax", {"wrench_convention": WRENCH_CONVENTION, "frame_id": self.frame_id})
+            self._writer.add_metadata("moirejax", {"wrench_convention": WRENCH_CONVENTION})
             # The magic, header and metadata on disk now: a `.part` is a recognisable MCAP
             # file from the start. Messages follow a chunk (1 MiB) at a time.
             self._stream.flush()
@@ -234,8 +230,7 @@ class McapSink(_CountingSink):
         if ns is None:
             ns = time.time_ns()
         sec, nanosec = divmod(ns, 1_000_000_000)
-        frame_id = getattr(record, "frame_id", None) or self.frame_id
-        return {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": frame_id}, ns
+        return {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": record.frame_id}, ns
 
     def _guarded(self, write: Callable[[], None]) -> None:
         """Run `write` under the lock; a closed sink or a failure is counted, never raised."""

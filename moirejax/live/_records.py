@@ -23,6 +23,8 @@ from ._types import Real
 # Statuses whose wrench is an estimate of the load (others carry no wrench, or one that the
 # inversion itself flags as unexplained).
 _WRENCH_STATUSES = frozenset({"converged", "max_steps"})
+# Statuses of a frame the inversion found touched, whether or not its wrench is believed.
+_TOUCHED_STATUSES = _WRENCH_STATUSES | {"unexplained"}
 
 
 class WrenchFilter:
@@ -124,12 +126,13 @@ class RecordStream:
             self._seq += 1
         wrench, covariance = record.wrench, record.covariance
         fields: dict = dict(sensor_id=self.sensor_id, frame_id=self.frame_id, seq=seq, monotonic=monotonic)
-        in_contact = record.mode == "tactile" and record.status in _WRENCH_STATUSES and wrench is not None
-        if not in_contact:
-            if self.filter is not None:
-                self.filter.reset()
-            return dataclasses.replace(record, **fields, in_contact=False)
-        assert wrench is not None
+        in_contact = record.mode == "tactile" and record.status in _TOUCHED_STATUSES
+        if not in_contact and self.filter is not None:
+            self.filter.reset()
+        if not in_contact or wrench is None or record.status not in _WRENCH_STATUSES:
+            # Touched but not believed (unexplained): the record says so, and its wrench
+            # is neither corrected nor filtered.
+            return dataclasses.replace(record, **fields, in_contact=in_contact)
         wrench = wrench - bias
         cov = None if covariance is None else np.asarray(covariance, np.float64)
         filtered = False

@@ -47,7 +47,8 @@ class WrenchRecord:
     `stamp` is the frame's grab time in Unix seconds (`monotonic` the same instant on the
     monotonic clock); `latency_ms` runs from grab to emit. `seq` counts the records of a
     stream from 0 (`frame` is the source's frame index, whose gaps are dropped frames).
-    `in_contact` is true for a tactile-mode record with a wrench; `out_of_range` flags each
+    `in_contact` is true for a tactile-mode frame the inversion found touched (`converged`,
+    `max_steps`, or `unexplained`, whose wrench is not believed); `out_of_range` flags each
     axis whose magnitude exceeds the unit's calibrated range; `centre_of_pressure_mm` is
     `(-ty / fz, tx / fz)` on the contact surface (mm), given while the normal force is
     resolved; `contact_area_mm2` is the fitted contact patch's area; `filtered` says the
