@@ -20,7 +20,6 @@ from moirejax.live import (
     McapSink,
     Reconnect,
     RecordStream,
-    SimulatedSensor,
     WrenchFilter,
 )
 from moirejax.physics import Contact
@@ -54,7 +53,6 @@ class Rig:
 
     def __init__(self, device):
         self.device = device
-        self.nominal = SimulatedSensor(device)
         self.unplugged_grabs = 0
         self.tared = threading.Event()
         self.second_press: int | None = None
@@ -70,9 +68,18 @@ class Rig:
             pressed = index < self.second_press + PRESS_FRAMES
         elif index >= UNPLUG + 40 and not self.tared.is_set():
             time.sleep(0.05)  # hold the camera back until the tare is done
-        unit = eqx.tree_at(lambda d: d.optics.phase2, self.device, self.device.optics.phase2 + drift)
         wrench, contact = (PRESS, CONTACT) if pressed else (np.zeros(6), Contact())
-        return np.asarray(Simulator(unit, fidelity="model").frame(jr.PRNGKey(index), wrench, contact), np.float32)
+        return self.render(index, wrench, contact, drift)
+
+    def render(self, index, wrench, contact, drift=0.0):
+        """A frame with the renderer's camera effects the inversion does not model: the
+        unit's grating fabrication errors, vignetting, PSF, shot and read noise, 8 bits."""
+        unit = eqx.tree_at(lambda d: d.optics.phase2, self.device, self.device.optics.phase2 + drift)
+        return np.asarray(Simulator(unit, fidelity="high").frame(jr.PRNGKey(index), wrench, contact), np.float32)
+
+    def reference(self):
+        """The unit's no-contact reference before the drift: the mean of eight untouched frames."""
+        return np.mean([self.render(-1 - i, np.zeros(6), Contact()) for i in range(8)], axis=0)
 
 
 def wait_until(predicate, timeout=120.0):
@@ -94,7 +101,7 @@ def session(tmp_path_factory):
     mcap = McapSink(folder / "session.mcap")
     seen: list = []
     handle = mj.open_sensor(
-        DEVICE, source, reference=rig.nominal.reference_frame(), sinks=[mcap], sensor_id="left", frame_id="left_pad"
+        DEVICE, source, reference=rig.reference(), sinks=[mcap], sensor_id="left", frame_id="left_pad"
     )
     handle.on_record(seen.append)
     handle.on_record(lambda record: 1 / 0)  # a broken callback must not stop the stream
@@ -108,7 +115,7 @@ def session(tmp_path_factory):
         assert wait_until(lambda: handle.latest().frame >= UNPLUG + 10 and handle.mode == "vision")
         compiled = handle._processor.step._compiled
         out["programs_before"] = compiled._cache_size()
-        handle.tare(frames=5)
+        handle.tare()
         rig.tared.set()
         assert wait_until(lambda: rig.second_press is not None and handle.latest().frame > rig.second_press + 30)
         out["programs_after"] = handle._processor.step._compiled._cache_size()
@@ -135,10 +142,13 @@ def test_a_tare_removes_a_drift_of_the_gratings(session):
         return r.status == "converged" and np.all(np.abs(r.wrench - undrifted) < 0.1 * WRENCH_SCALE)
 
     # Against the old reference the drift ruins every reading (a wrong load or a fit the
-    # model cannot explain); after the tare the unit reads what it read before the drift, to
-    # a tenth of each range (the drifted unit is not the same unit: its fringes sit elsewhere).
+    # model cannot explain). After the tare every frame converges and, averaged over the
+    # press, the unit reads what it read before the drift to 5% of each range (a frame's
+    # own noise is up to a tenth of the shear range on this small, noisy camera).
     assert not any(as_before_the_drift(r) for r in before), [(r.status, r.wrench) for r in before]
-    assert all(as_before_the_drift(r) for r in after), ([(r.status, r.wrench) for r in after], undrifted)
+    assert all(r.status == "converged" for r in after), [r.status for r in after]
+    shift = np.mean([r.wrench for r in after], axis=0) - undrifted
+    assert np.all(np.abs(shift) < 0.05 * WRENCH_SCALE), shift / WRENCH_SCALE
     assert np.all(np.abs(undrifted - PRESS) < 0.25 * WRENCH_SCALE), undrifted
 
 
