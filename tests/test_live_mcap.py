@@ -4,6 +4,7 @@ import dataclasses
 import json
 import os
 import struct
+import sys
 import threading
 import time
 
@@ -312,3 +313,10 @@ def test_threads_share_one_sink(tmp_path):
     frames = sorted(json.loads(m.ros_msg.data)["frame"] for m in read(path, "/moirejax/record"))
     assert frames == sorted(i * 1000 + k for i in range(3) for k in range(100))
     assert len(read(path, "/moirejax/wrench")) == 300 and len(read(path, "/moirejax/image")) == 30
+
+
+def test_without_the_ros_extra_the_error_says_how_to_install_it(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "mcap_ros2.writer", None)
+    with pytest.raises(ImportError, match=r"moirejax\[ros\]"):
+        McapSink(tmp_path / "x.mcap")
+    assert not (tmp_path / "x.mcap.part").exists()

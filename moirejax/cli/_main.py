@@ -303,9 +303,13 @@ def _cmd_live(args: argparse.Namespace) -> int:
             check_output_file(spec, argument="sink")
     if args.mcap:
         check_output_file(args.mcap, argument="mcap")
-    sinks = [parse_sink(spec) for spec in (args.sink or ["-"])]
+    mcap = []
     if args.mcap:
-        sinks.append(McapSink(args.mcap))
+        try:
+            mcap = [McapSink(args.mcap)]
+        except ImportError as e:  # without the `ros` extra: a usage error, not a crash
+            raise ValueError(f"--mcap: {e}") from e
+    sinks = [parse_sink(spec) for spec in (args.sink or ["-"])] + mcap
     records = RecordStream(
         sensor_id=args.sensor_id,
         frame_id=args.frame_id,
