@@ -145,8 +145,11 @@ from .physics import (
     traction_spectrum as traction_spectrum,
 )
 from .simulate import (
+    CONTACT_FAMILIES as CONTACT_FAMILIES,
     CONTACT_SHAPES as CONTACT_SHAPES,
+    contact_summary as contact_summary,
     Deviations as Deviations,
+    grasp_limits as grasp_limits,
     Indenter as Indenter,
     indenter_deformation as indenter_deformation,
     indenter_tractions as indenter_tractions,
@@ -155,7 +158,10 @@ from .simulate import (
     LoadSchedule as LoadSchedule,
     perturb_device as perturb_device,
     random_indenters as random_indenters,
+    shape_schedule as shape_schedule,
     simulate_dataset as simulate_dataset,
+    Simulator as Simulator,
+    traction_deformation as traction_deformation,
 )
 
 

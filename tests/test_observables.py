@@ -6,6 +6,7 @@ the analytic fringe parameters, a zero-padded Hann-windowed numpy FFT with sciki
 peak finder, `skimage.restoration.unwrap_phase`, `cv2.moments`, and finite differences.
 """
 
+import dataclasses
 import math
 
 import cv2
@@ -17,6 +18,7 @@ import pytest
 from skimage.feature import peak_local_max
 from skimage.restoration import unwrap_phase
 
+import moirejax as mj
 from moirejax.observe._observables import (
     brightness_baseline,
     demodulate_numpy,
@@ -440,3 +442,21 @@ def test_white_noise_variance_reads_the_camera_noise_under_the_gratings():
         assert abs(float(mj.white_noise_variance(frame)) / sigma**2 - 1) < 0.15
     # Without noise, what is left is leakage of the pattern: far below any camera's noise.
     assert float(mj.white_noise_variance(jnp.asarray(pattern))) < 1e-7
+
+
+def test_long_moire_period_keeps_a_positive_brightness_envelope():
+    # A Mid unit whose reference pitch came out 3 % finer than drawn (inside what
+    # `perturb_device` draws for the two pitches together) has a moiré period of 7.4 mm
+    # instead of 4.2: its brightness band is a few bins wide and the band-passed
+    # apodization rings below zero at the border, which used to refuse the unit outright.
+    device = mj.preset("mid")
+    unit = dataclasses.replace(device, p2=0.291)
+    moire = np.asarray(unit.moire_wavevectors(), np.float64)
+    assert np.linalg.norm(moire, axis=-1).max() < 0.6 * np.linalg.norm(np.asarray(device.moire_wavevectors())[0])
+    demodulator = Demodulator((unit.height, unit.width), float(unit.px_per_mm), moire)
+    envelope = np.asarray(demodulator.brightness_envelope)
+    assert envelope.min() > 0 and np.isfinite(np.asarray(demodulator.brightness_normalisation)).all()
+    # The middle of a uniform frame still reads its brightness.
+    fields = demodulator(jnp.full((unit.height, unit.width), 0.4))
+    m, n = np.asarray(fields.brightness).shape
+    np.testing.assert_allclose(np.asarray(fields.brightness)[m // 4 : -m // 4, n // 4 : -n // 4], 0.4, rtol=2e-3)

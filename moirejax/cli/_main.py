@@ -28,6 +28,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
 def _check_new_folder(path: str, overwrite: bool) -> None:
     """A dataset folder to write: writable, and empty unless --overwrite (checked before any work)."""
     folder = check_output_folder(path, argument="out")
@@ -142,10 +152,19 @@ def _cmd_design(args: argparse.Namespace) -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from ..simulate import simulate_dataset
 
+    if args.max_force is not None and args.protocol != "shapes":
+        raise ValueError("--max-force applies to --protocol shapes only")
     _check_new_folder(args.out, args.overwrite)
     device = _device_from_args(args)
     out = simulate_dataset(
-        args.out, device, args.protocol, args.n, seed=args.seed, fidelity=args.fidelity, overwrite=args.overwrite
+        args.out,
+        device,
+        args.protocol,
+        args.n,
+        seed=args.seed,
+        fidelity=args.fidelity,
+        overwrite=args.overwrite,
+        max_force=args.max_force,
     )
     print(f"wrote {args.n} {args.fidelity}-fidelity frames of protocol {args.protocol!r} to {out}")
     print(f"contact sheet: {out.with_name(out.name + '_contact_sheet.png')}")
@@ -400,7 +419,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="render a dataset of a simulated unit under a load protocol")
     _add_device_arguments(p)
-    p.add_argument("--protocol", choices=["paper", "mixed", "sequence", "none"], default="paper")
+    p.add_argument(
+        "--protocol",
+        choices=["paper", "mixed", "sequence", "none", "shapes"],
+        default="paper",
+        help="paper: isolated axes; mixed: combined loads; sequence: a press-twist-slide-release video; "
+        "none: no contact; shapes: spheres, flat and square punches, rings, lines and two fingertips",
+    )
+    p.add_argument(
+        "--max-force",
+        type=_positive_float,
+        metavar="N",
+        help="largest normal force of --protocol shapes (default the paper's 1.2 N; grasps reach 10 N), "
+        "with shear and twist scaled to it",
+    )
     p.add_argument("--n", type=_positive_int, default=500, help="number of frames")
     p.add_argument("--out", required=True, metavar="DIR", help="dataset folder to write")
     p.add_argument("--seed", type=int, default=0, help="draws the unit's deviations, the loads and the noise")

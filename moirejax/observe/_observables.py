@@ -86,6 +86,10 @@ BAND_FRACTION = 0.45
 BAND_ROLLOFF = 0.3
 
 
+# The smallest brightness envelope, relative to its peak, a coarse sample is given.
+_ENVELOPE_FLOOR = 1e-6
+
+
 def _raised_cosine(xp, distance, radius, rolloff):
     """Raised-cosine disc profile: 1 inside `radius*(1-rolloff)`, cosine taper to 0 at `radius`."""
     flat = radius * (1 - rolloff)
@@ -382,7 +386,7 @@ class Demodulator(eqx.Module):
       window, phase reference moved from pixel (0, 0) to coarse sample (0, 0), normalisation).
     - `brightness_transfer`: the same for the DC band (window centred on DC).
     - `brightness_envelope`: the band-passed apodization, about 1 in the middle and small at
-      the border; the brightness is divided by it.
+      the border (floored at `_ENVELOPE_FLOOR` of its peak); the brightness is divided by it.
     - `brightness_normalisation`: `(-1)^(r+s) / brightness_envelope`.
     - `peak_support`: bins where each family's band window is non-zero, within `peak_radius`.
     - `centroid_weights`: separable Tukey weights `(rows, columns)` of the brightness
@@ -549,8 +553,11 @@ class Demodulator(eqx.Module):
         # Natural bin order makes the inverse FFT carry a (-1)^(r+s) sign pattern.
         parity = (-1.0) ** (np.arange(m)[:, None] + np.arange(n)[None, :])
         dc_envelope = parity * np.real(_band_pass(np, dc_tone[0], dc_transfer, apodize, h, w))
-        if dc_envelope.min() <= 0:
-            raise ValueError(f"The brightness envelope vanishes; increase crop_shape {crop_shape}.")
+        # A long moiré period (a unit whose pitches came out closer than drawn) narrows the
+        # brightness band to a few bins, and its band-passed apodization then rings below
+        # zero at the border. The brightness is a nuisance there: floor the envelope so that
+        # those samples carry next to no weight instead of a division by zero or a sign flip.
+        dc_envelope = np.maximum(dc_envelope, _ENVELOPE_FLOOR * dc_envelope.max())
 
         self.frame_shape = (h, w)
         self.crop_shape = (m, n)

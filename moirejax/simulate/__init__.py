@@ -4,12 +4,17 @@ It imports `physics`, `data` and the foundation modules, never `observe`.
 """
 
 from ._contacts import (
+    CONTACT_FAMILIES as CONTACT_FAMILIES,
     CONTACT_SHAPES as CONTACT_SHAPES,
+    contact_summary as contact_summary,
+    grasp_limits as grasp_limits,
     Indenter as Indenter,
     indenter_deformation as indenter_deformation,
     indenter_tractions as indenter_tractions,
     IndenterFrame as IndenterFrame,
     random_indenters as random_indenters,
+    shape_schedule as shape_schedule,
+    traction_deformation as traction_deformation,
 )
 from ._simulate import (
     Deviations as Deviations,

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._conventions import NMM_PER_NM
+from .._conventions import NMM_PER_NM, PAPER_RANGES
 from ..physics import Device, gaussian_blur_fft, layer_response, surface_grid, SurfaceGrid, traction_resultant
 
 
@@ -149,16 +149,30 @@ class IndenterFrame(eqx.Module):
 def indenter_deformation(
     device: Device, indenters: Sequence[Indenter], shape: tuple[int, int] = (256, 256), supersample: int = 4
 ) -> IndenterFrame:
-    """Solve the elastomer under `indenters` on a mechanics grid of `shape` covering the image.
+    """Solve the elastomer under `indenters` on a mechanics grid of `shape` covering the image
+    ([`traction_deformation`][moirejax.traction_deformation] of their
+    [`indenter_tractions`][moirejax.indenter_tractions])."""
+    grid = surface_grid(shape, device.px_per_mm, (device.height, device.width), device.a, device.Z)
+    return traction_deformation(device, indenter_tractions(indenters, grid, supersample))
+
+
+def traction_deformation(device: Device, tractions: Float[Array | np.ndarray, "3 h w"]) -> IndenterFrame:
+    """Solve the elastomer under any traction field `(tx, ty, p)` (MPa, pressure positive)
+    given on a mechanics grid of shape `(h, w)` covering the image, as
+    [`surface_grid`][moirejax.surface_grid] lays it out: a pressure map measured elsewhere,
+    drawn by hand, or summed from indenters.
 
     The light scattered in the elastomer follows the device's optics: the glow is the blurred
     pressure; the LED rim is a band along the edge of the contact region, brighter with the
     normal force. Render the result with [`render_deformed`][moirejax.render_deformed] (after
     resampling to the pixels) or [`render_deformed_high`][moirejax.render_deformed_high].
     """
+    tractions = jnp.asarray(tractions)
+    if tractions.ndim != 3 or tractions.shape[0] != 3:
+        raise ValueError(f"tractions must be (3, h, w) fields (tx, ty, p), got shape {tractions.shape}")
+    shape = (int(tractions.shape[1]), int(tractions.shape[2]))
     grid = surface_grid(shape, device.px_per_mm, (device.height, device.width), device.a, device.Z)
     e = device.elastomer
-    tractions = indenter_tractions(indenters, grid, supersample)
     displacement = layer_response(shape, grid.spacing, e.E, e.nu, e.thickness)(tractions)
     optics = device.optics
     pressure = tractions[2]
@@ -167,7 +181,7 @@ def indenter_deformation(
         (pressure > 1e-6 * jnp.max(pressure)).astype(pressure.dtype), optics.rim_width, grid.spacing
     )
     edge = 4 * jnp.clip(support, 0, 1) * (1 - jnp.clip(support, 0, 1))
-    pressing = jnp.asarray(sum(float(i.force[2]) for i in indenters), pressure.dtype)
+    pressing = jnp.clip(jnp.sum(pressure) * grid.spacing**2, 0.0, None)
     rim = optics.rim_gain * pressing / jnp.sqrt(pressing + 0.05) * edge
     return IndenterFrame(
         wrench=traction_resultant(tractions, grid),
@@ -178,26 +192,41 @@ def indenter_deformation(
     )
 
 
+def grasp_limits(max_force: float) -> tuple[float, float]:
+    """The largest shear force (N) and twist (N·m) drawn with normal forces up to `max_force`.
+
+    At the paper's calibration range (1.2 N) they are its 0.2 N and 0.006 N·m; at the grasp
+    loads of its cap removal (10 N) about 1 N and 0.035 N·m. In between and beyond they follow
+    the power laws through those two points.
+    """
+    ratio = max(float(max_force), PAPER_RANGES["fz"]) / PAPER_RANGES["fz"]
+    return PAPER_RANGES["fx"] * ratio**0.75, 0.006 * ratio**0.84
+
+
 def random_indenters(rng: np.random.Generator, family: str, max_force: float = 1.2) -> list[Indenter]:
     """Loads of one contact family inside the paper's calibration ranges (or up to
     `max_force` newtons of normal force): `family` is one of [`CONTACT_SHAPES`][moirejax.CONTACT_SHAPES] or `"two"`
     (two fingertips).
 
-    Normal force uniform in [0.1, `max_force`] N (split between two fingertips), shear up
-    to 0.2 N (less under a light press: friction), twist up to 0.006 N·m; the contact lies
-    within 4 mm of the centre.
+    Normal force uniform in [0.1, `max_force`] N (split between two fingertips), shear and
+    twist up to [`grasp_limits`][moirejax.grasp_limits] (0.2 N and 0.006 N·m in the paper's
+    range; less under a light press: friction); the contact lies within 4 mm of the centre,
+    and above the paper's 1.2 N it grows with the cube root of the force.
     """
     if family not in (*CONTACT_SHAPES, "two"):
         raise ValueError(f"unknown contact family {family!r}; choose from {', '.join((*CONTACT_SHAPES, 'two'))}")
     fz = rng.uniform(0.1, max_force)
     scale = min(1.0, fz / 0.4)
-    shear = tuple(rng.uniform(-0.2, 0.2, 2) * scale)
-    twist = rng.uniform(-0.006, 0.006) * scale
+    shear_limit, twist_limit = grasp_limits(max_force)
+    shear = tuple(rng.uniform(-shear_limit, shear_limit, 2) * scale)
+    twist = rng.uniform(-twist_limit, twist_limit) * scale
+    # A harder press spreads the contact (Hertz: radius as the cube root of the force).
+    grow = max(1.0, fz / PAPER_RANGES["fz"]) ** (1 / 3)
     x0, y0 = rng.uniform(-4, 4, 2)
     angle = rng.uniform(0, math.pi)
     if family == "two":
         split = rng.uniform(0.3, 0.7)
-        gap = rng.uniform(7.0, 11.0)
+        gap = rng.uniform(7.0, 11.0) * grow
         dx, dy = 0.5 * gap * math.cos(angle), 0.5 * gap * math.sin(angle)
         x0, y0 = rng.uniform(-2, 2, 2)
         return [
@@ -205,7 +234,7 @@ def random_indenters(rng: np.random.Generator, family: str, max_force: float = 1
                 "sphere",
                 x0 + dx,
                 y0 + dy,
-                rng.uniform(2.0, 3.0),
+                rng.uniform(2.0, 3.0) * grow,
                 force=(shear[0] * split, shear[1] * split, fz * split),
                 twist=twist * split,
             ),
@@ -213,7 +242,7 @@ def random_indenters(rng: np.random.Generator, family: str, max_force: float = 1
                 "sphere",
                 x0 - dx,
                 y0 - dy,
-                rng.uniform(2.0, 3.0),
+                rng.uniform(2.0, 3.0) * grow,
                 force=(shear[0] * (1 - split), shear[1] * (1 - split), fz * (1 - split)),
                 twist=twist * (1 - split),
             ),
@@ -224,6 +253,49 @@ def random_indenters(rng: np.random.Generator, family: str, max_force: float = 1
         "ring": rng.uniform(3.0, 5.0),
         "line": rng.uniform(3.0, 6.0),
         "square": rng.uniform(2.0, 3.5),
-    }[family]
+    }[family] * grow
     width = {"ring": rng.uniform(0.5, 1.0), "line": rng.uniform(0.6, 1.2)}.get(family, 1.0)
     return [Indenter(family, x0, y0, size, width, angle, force=(shear[0], shear[1], fz), twist=twist)]
+
+
+CONTACT_FAMILIES = (*CONTACT_SHAPES, "two")
+
+
+def shape_schedule(
+    n: int, seed: int = 0, max_force: float = PAPER_RANGES["fz"], families: Sequence[str] = CONTACT_FAMILIES
+) -> list[tuple[str, list[Indenter]] | None]:
+    """The contacts of `n` frames that mix contact families: each loaded frame draws a family
+    of `families` in turn and its load from [`random_indenters`][moirejax.random_indenters]
+    (normal force up to `max_force`); the session starts with a few unloaded frames, the
+    unit's no-contact reference (`None`)."""
+    if n < 1:
+        raise ValueError(f"need at least one frame, got n={n}")
+    if not families or any(f not in CONTACT_FAMILIES for f in families):
+        raise ValueError(f"contact families must be among {', '.join(CONTACT_FAMILIES)}, got {list(families)}")
+    if not float(max_force) > 0:
+        raise ValueError(f"max_force must be positive, got {max_force}")
+    rng = np.random.default_rng(seed)
+    unloaded = max(2, min(8, n // 50)) if n >= 8 else 0
+    schedule: list[tuple[str, list[Indenter]] | None] = [None] * unloaded
+    for i in range(n - unloaded):
+        family = families[i % len(families)]
+        schedule.append((family, random_indenters(rng, family, max_force)))
+    return schedule
+
+
+def contact_summary(frame: IndenterFrame) -> dict[str, float]:
+    """Where and how large a contact is, from its traction field: the centre of pressure
+    (`x0`, `y0`, mm), the area where it presses (`area`, mm²) and the radius of a disc of that
+    area (`radius`, mm); NaN without a normal load."""
+    pressure = np.asarray(frame.tractions[2])
+    cell = float(frame.grid.spacing) ** 2
+    fz = pressure.sum() * cell
+    if not fz > 0:
+        return {"x0": math.nan, "y0": math.nan, "radius": math.nan, "area": math.nan}
+    area = float(np.count_nonzero(pressure > 1e-3 * pressure.max()) * cell)
+    return {
+        "x0": float((pressure * np.asarray(frame.grid.X)).sum() * cell / fz),
+        "y0": float((pressure * np.asarray(frame.grid.Y)).sum() * cell / fz),
+        "radius": math.sqrt(area / math.pi),
+        "area": area,
+    }

@@ -3,8 +3,9 @@
 A simulated unit is a nominal design plus fabrication deviations (pitch, angle,
 separation, stiffness, grating registration, optics); datasets record the nominal
 device and, apart from it, the true one. Load protocols follow the paper's
-calibration (isolated axes), random mixed loads, a manipulation-like sequence, or no
-contact.
+calibration (isolated axes), random mixed loads, a manipulation-like sequence, no
+contact, or contacts of every shape of the indenter library (`shapes`: spheres, flat and
+square punches, rings, lines, two fingertips, each solved through its own mechanics).
 """
 
 import dataclasses
@@ -18,10 +19,22 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from ..physics import Contact, Device, device_to_json, HighFidelity, render_frame, render_frame_high
+from .._conventions import PAPER_RANGES
+from ..physics import (
+    Contact,
+    Device,
+    device_to_json,
+    HighFidelity,
+    render_deformed,
+    render_deformed_high,
+    render_frame,
+    render_frame_high,
+)
+from ._contacts import CONTACT_FAMILIES, contact_summary, indenter_deformation, IndenterFrame, shape_schedule
 
 
-Protocol = Literal["paper", "mixed", "sequence", "none"]
+Protocol = Literal["paper", "mixed", "sequence", "none", "shapes"]
+# The protocols of `load_schedule`: one Hertz contact per frame.
 PROTOCOLS = ("paper", "mixed", "sequence", "none")
 
 
@@ -195,6 +208,23 @@ class Simulator(eqx.Module):
             return jnp.clip(render_frame(self.device, wrench, contact), 0.0, 1.0)
         return render_frame_high(key, self.device, wrench, contact, self.high, fabrication_key=self.fabrication_key)
 
+    def deformed_frame(self, key, deformation: IndenterFrame) -> jax.Array:
+        """One frame in [0, 1] of any solved deformation (indenters of other shapes, a
+        traction map); its mechanics grid covers the image."""
+        if self.fidelity == "model":
+            shape = (self.device.height, self.device.width)
+            resize = lambda f: jax.image.resize(f, (*f.shape[:-2], *shape), method="cubic")
+            frame = render_deformed(self.device, resize(deformation.displacement), resize(deformation.light))
+            return jnp.clip(frame, 0.0, 1.0)
+        return render_deformed_high(
+            key,
+            self.device,
+            deformation.displacement,
+            deformation.light,
+            self.high,
+            fabrication_key=self.fabrication_key,
+        )
+
 
 def simulate_dataset(
     out: str | Path,
@@ -207,6 +237,7 @@ def simulate_dataset(
     unit: Device | None = None,
     progress: bool = True,
     overwrite: bool = False,
+    max_force: float | None = None,
 ) -> Path:
     """Simulate `n` frames of `protocol` for a unit of design `nominal` into a dataset folder.
 
@@ -214,6 +245,12 @@ def simulate_dataset(
     [`perturb_device`][] with `seed`; the manifest records the nominal device and the true
     one apart. A contact sheet PNG of sample frames is written beside the dataset, and a
     `sequence` protocol also writes an MP4.
+
+    The `shapes` protocol mixes the contact families of [`shape_schedule`][moirejax.shape_schedule]
+    with normal forces up to `max_force` (default the paper's 1.2 N; grasps go to 10 N), each
+    frame's wrench the resultant of its traction field; its latent columns are the centre
+    of pressure (`x0`, `y0`), the contact `area` (mm²), the `radius` of a disc of that area and
+    the `family` (its index in [`CONTACT_FAMILIES`][moirejax.CONTACT_FAMILIES]).
     """
     from tqdm.auto import tqdm
 
@@ -221,8 +258,23 @@ def simulate_dataset(
 
     if unit is None:
         unit = perturb_device(jr.PRNGKey(seed), nominal) if fidelity == "high" else nominal
+    if max_force is not None and protocol != "shapes":
+        raise ValueError(f"max_force applies to the shapes protocol only, not {protocol!r}")
     simulator = Simulator(unit, fidelity=fidelity, fabrication_key=jr.PRNGKey(seed + 1000))
-    schedule = load_schedule(protocol, n, seed)
+    if protocol == "shapes":
+        contacts = shape_schedule(n, seed, PAPER_RANGES["fz"] if max_force is None else max_force)
+        schedule = LoadSchedule(
+            wrench=np.zeros((n, 6)),
+            x0=np.full(n, np.nan),
+            y0=np.full(n, np.nan),
+            radius=np.full(n, np.nan),
+            contact=np.array([c is not None for c in contacts]),
+        )
+    else:
+        contacts = None
+        schedule = load_schedule(protocol, n, seed)
+    render_deformation = eqx.filter_jit(simulator.deformed_frame)
+    at_rest = None
     out = Path(out)
     key = jr.PRNGKey(seed + 2000)
     samples = []
@@ -241,13 +293,28 @@ def simulate_dataset(
         overwrite=overwrite,
     ) as writer:
         for i in tqdm(range(n), desc=f"simulate {protocol}", disable=not progress, unit="frame"):
-            frame = np.asarray(simulator.frame(jr.fold_in(key, i), schedule.wrench[i], schedule.contact_at(i)))
+            if contacts is None:
+                frame = np.asarray(simulator.frame(jr.fold_in(key, i), schedule.wrench[i], schedule.contact_at(i)))
+                latent = {"x0": schedule.x0[i], "y0": schedule.y0[i], "radius": schedule.radius[i]}
+            else:
+                contact = contacts[i]
+                if contact is None:
+                    if at_rest is None:
+                        at_rest = indenter_deformation(unit, [])
+                    deformation, family = at_rest, math.nan
+                else:
+                    deformation = indenter_deformation(unit, contact[1])
+                    family = float(CONTACT_FAMILIES.index(contact[0]))
+                frame = np.asarray(render_deformation(jr.fold_in(key, i), deformation))
+                schedule.wrench[i] = np.asarray(deformation.wrench) if contact is not None else 0.0
+                latent = {**contact_summary(deformation), "family": family}
+                schedule.x0[i], schedule.y0[i], schedule.radius[i] = latent["x0"], latent["y0"], latent["radius"]
             writer.add(
                 frame,
                 schedule.wrench[i],
                 t=None if schedule.t is None else float(schedule.t[i]),
                 contact=bool(schedule.contact[i]),
-                latent={"x0": schedule.x0[i], "y0": schedule.y0[i], "radius": schedule.radius[i]},
+                latent=latent,
             )
             if i in sample_at:
                 samples.append((i, frame))
