@@ -52,6 +52,7 @@ FLAGS = {
     "observability_plot": "--observability-plot",
     "record": "--record",
     "sink": "--sink",
+    "restore": "--restore",
 }
 
 # The flags of each command that name outputs; the others that name paths are inputs.
@@ -64,6 +65,7 @@ OUTPUT_FLAGS = {
     "evaluate": ("out",),
     "transfer": ("out",),
     "live": ("record", "sink"),
+    "vision": ("restore",),
     "cap-removal": ("out",),
     "demo": ("out",),
 }

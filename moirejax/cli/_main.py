@@ -38,6 +38,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
+    return value
+
+
 def _check_new_folder(path: str, overwrite: bool) -> None:
     """A dataset folder to write: writable, and empty unless --overwrite (checked before any work)."""
     folder = check_output_folder(path, argument="out")
@@ -355,6 +365,186 @@ def _cmd_live(args: argparse.Namespace) -> int:
     return 0
 
 
+# Frames of the empty view that `vision` averages for its reference when none is given.
+VISION_REFERENCE_FRAMES = 5
+
+
+def _vision_frames(spec: str):
+    """The frame source of `vision --frames`: a folder of images (a dataset's `frames/`) or a video."""
+    from ..inverse import check_source
+    from ..live import FolderSource, VideoSource
+
+    path = Path(spec)
+    kind = check_source(path)  # no such path, a folder without images, not a video: named
+    if kind == "dataset":
+        return FolderSource(path / "frames")
+    return FolderSource(path) if kind == "folder" else VideoSource(path)
+
+
+def _bgr(frame):
+    """A frame's uint8 BGR image; a gray frame repeated in the three channels."""
+    import cv2
+    import numpy as np
+
+    if frame.color is not None:
+        return frame.color
+    return cv2.cvtColor((frame.gray * 255 + 0.5).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+
+
+def _frame_name(source, index: int) -> str:
+    files = getattr(source, "files", None)
+    return files[index].name if files and index < len(files) else f"{index:06d}"
+
+
+def _vision_reference(args: argparse.Namespace, shape: tuple[int, int]):
+    """The empty view for `vision` (a stack of uint8 BGR frames) and a line saying where it came from."""
+    import cv2
+    import numpy as np
+
+    from ..live import FolderSource, SourceEvent, VideoSource
+
+    if args.reference:
+        path, flag = Path(args.reference), "--reference"
+        if not path.exists():
+            raise DataError(f"{path}: no such image, folder of images or video")
+        if path.is_file():
+            data = np.fromfile(path, dtype=np.uint8)
+            # An image file as 8-bit BGR (gray repeated); anything else is read as a video.
+            image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+            if image is not None:
+                if image.shape[:2] != shape:
+                    raise DataError(
+                        f"{path}: reference frame is {image.shape[0]}x{image.shape[1]}, the device expects "
+                        f"{shape[0]}x{shape[1]} (given by {flag})"
+                    )
+                return image[None], f"reference: {path}"
+        source, limit = (FolderSource(path), None) if path.is_dir() else (VideoSource(path), VISION_REFERENCE_FRAMES)
+        what = "{n} images of" if path.is_dir() else "the first {n} frames of"
+    else:
+        path, flag = Path(args.frames), "--frames"
+        source, limit = _vision_frames(args.frames), VISION_REFERENCE_FRAMES
+        what = "the first {n} frames of"
+    frames = []
+    with source:
+        for item in source:
+            if isinstance(item, SourceEvent):
+                if item.final and not frames and item.status != "end_of_stream":
+                    unreadable = item.status == "open_failed" and path.is_file()
+                    raise DataError(
+                        f"{path}: " + ("cannot be read as an image or a video" if unreadable else item.message)
+                    )
+                continue
+            frames.append(_bgr(item))
+            if limit is not None and len(frames) == limit:
+                break
+    if not frames:
+        raise DataError(f"{path}: no readable frame for the reference of the empty view")
+    sizes = sorted({f.shape[:2] for f in frames})
+    if sizes != [shape]:
+        found = ", ".join(f"{h}x{w}" for h, w in sizes)
+        raise DataError(
+            f"{path}: reference frames are {found}, the device expects {shape[0]}x{shape[1]} (given by {flag})"
+        )
+    return np.stack(frames), f"reference: mean of {what} {path}".replace("{n}", str(len(frames)))
+
+
+def _vision_record(index: int, name: str, status: str, objects=(), message: str | None = None) -> dict:
+    def number(value, digits: int):
+        return None if value is None or not math.isfinite(value) else round(float(value), digits)
+
+    record: dict = {"frame": index, "file": name, "mode": "vision", "status": status}
+    record["objects"] = [
+        {
+            "x_mm": number(o.x_mm, 4),
+            "y_mm": number(o.y_mm, 4),
+            "yaw_deg": number(o.yaw_deg, 2),
+            "size_mm": number(o.size_mm, 4),
+            "hue": number(o.hue, 1),
+            "colour": o.colour,
+            "confidence": number(o.confidence, 3),
+        }
+        for o in objects
+    ]
+    if message:
+        record["message"] = message
+    return record
+
+
+def _vision_line(record: dict) -> str:
+    """One human-readable line per frame (without --json)."""
+    head = f"frame {record['frame']} ({record['file']}): {record['status']}"
+    if record.get("message"):
+        return f"{head}: {record['message']}"
+    parts = []
+    for o in record["objects"]:
+        yaw = "round" if o["yaw_deg"] is None else f"yaw {o['yaw_deg']:.1f} deg"
+        parts.append(
+            f"{o['colour']} object at ({o['x_mm']:.2f}, {o['y_mm']:.2f}) mm, {o['size_mm']:.2f} mm, {yaw}, "
+            f"confidence {o['confidence']:.2f}"
+        )
+    return head + (": " + "; ".join(parts) if parts else "")
+
+
+def _cmd_vision(args: argparse.Namespace) -> int:
+    import cv2
+
+    from .._fileio import atomic_write_bytes
+    from ..calibration import load_calibrated
+    from ..live import locate, SeeThrough, SourceEvent
+
+    # Everything that can be checked is checked before the first frame.
+    device, _ = load_calibrated(args.device)
+    source = _vision_frames(args.frames)
+    out = None
+    if args.restore:
+        out = check_output_folder(args.restore, argument="restore")
+        frames_folder = Path(args.frames).resolve()
+        if out.resolve() in (frames_folder, frames_folder / "frames"):
+            raise ValueError("--restore must not be the --frames folder: the restored images would replace the frames")
+        if out.is_dir() and any(out.iterdir()) and not args.overwrite:
+            raise OutputError(f"{out}: folder is not empty; pass {{argument}} to replace it", argument="overwrite")
+    shape = (device.height, device.width)
+    reference, note = _vision_reference(args, shape)
+    print(note, file=sys.stderr)
+    see_through = SeeThrough(reference, black_level=float(device.optics.offset))
+    counts: dict[str, int] = {}
+    with source:
+        for item in source:
+            if isinstance(item, SourceEvent):
+                if item.status == "corrupt_frame":
+                    record = _vision_record(
+                        item.index, _frame_name(source, item.index), "corrupt_frame", (), item.message
+                    )
+                elif item.final and item.status != "end_of_stream":
+                    # A source that fails before its first frame is bad input; one that stops
+                    # part way (a video shorter than it declares) is reported as far as it went.
+                    if not counts:
+                        raise DataError(f"{args.frames}: {item.message}")
+                    warnings.warn(f"{args.frames}: {item.message}", DataWarning, stacklevel=1)
+                    continue
+                else:
+                    continue
+            else:
+                name = _frame_name(source, item.index)
+                image = _bgr(item)
+                if image.shape[:2] != shape:
+                    message = f"frame is {image.shape[0]}x{image.shape[1]}, the device expects {shape[0]}x{shape[1]}"
+                    record = _vision_record(item.index, name, "wrong_size", (), message)
+                else:
+                    sighting = locate(image, device, see_through=see_through, height=args.height)
+                    record = _vision_record(item.index, name, sighting.status, sighting.objects)
+                    if out is not None:
+                        ok, png = cv2.imencode(".png", see_through(image))
+                        if not ok:
+                            raise RuntimeError("OpenCV failed to encode a PNG image")
+                        atomic_write_bytes(out / (Path(name).stem + ".png"), png.tobytes())
+            counts[record["status"]] = counts.get(record["status"], 0) + 1
+            print(json.dumps(record) if args.json else _vision_line(record), flush=True)
+    summary = ", ".join(f"{n} {status}" for status, n in sorted(counts.items())) or "no frames"
+    print(f"{sum(counts.values())} frames: {summary}" + (f"; restored images in {out}" if out else ""), file=sys.stderr)
+    return 0
+
+
 def _cmd_cap_removal(args: argparse.Namespace) -> int:
     from ..calibration import load_calibrated
     from ..live import plot_timeline, run_cap_removal
@@ -534,6 +724,35 @@ def build_parser() -> argparse.ArgumentParser:
         help="the Kalman filter's load change per frame, as a fraction of each axis's range",
     )
     p.set_defaults(run=_cmd_live)
+
+    p = sub.add_parser("vision", help="see through the sensor: restored images and objects located before contact")
+    p.add_argument("--device", required=True, metavar="FILE", help="device JSON of the unit (nominal or calibrated)")
+    p.add_argument(
+        "--frames", required=True, metavar="DIR|VIDEO", help="colour frames, rectified: a folder of images or a video"
+    )
+    p.add_argument(
+        "--reference",
+        metavar="DIR|FILE",
+        help="the empty view (nothing above the sensor, no contact): an image, a folder of images (averaged) or "
+        f"a video (its first {VISION_REFERENCE_FRAMES} frames); default: the first {VISION_REFERENCE_FRAMES} "
+        "frames of --frames, which must then show the empty view",
+    )
+    p.add_argument(
+        "--height",
+        type=_non_negative_float,
+        metavar="MM",
+        help="the objects' height above the contact surface, for their scale (default: 0, on the surface)",
+    )
+    p.add_argument("--restore", metavar="OUTDIR", help="write each restored image there, as PNG named like its frame")
+    p.add_argument("--overwrite", action="store_true", help="write into a non-empty --restore folder")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON object per frame instead of a line of text: frame, file, mode (vision), status (ok, "
+        "empty, dark, saturated, corrupt_frame, wrong_size) and objects, each with x_mm, y_mm (wrench frame), "
+        "yaw_deg (null when round), size_mm, hue, colour and confidence",
+    )
+    p.set_defaults(run=_cmd_vision)
 
     p = sub.add_parser(
         "cap-removal", help="the paper's cap-removal cycle against the simulated sensor, with a timeline plot"

@@ -3,7 +3,9 @@ contact test, the status, and the [`Track`][] a stream continues from."""
 
 from typing import TYPE_CHECKING
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
 from .._conventions import WRENCH_SCALE
@@ -22,6 +24,10 @@ _UNEXPLAINED_SHARE = 0.5
 # not a load the model describes either: a foreign scene, another unit, a moved camera or an
 # occlusion is "explained" by an absurd load as readily as by a small one.
 _IMPLAUSIBLE_RANGES = 10.0
+# Side (coarse-grid cells) of the tiles whose disagreement measures the model error in the
+# covariance: wider than the demodulated noise's correlation, so that tiles are independent
+# under noise alone, and small enough that a frame has dozens of them.
+_TILE_CELLS = 4
 
 
 def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian, steps, result, start, pending=None):
@@ -62,7 +68,21 @@ def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian,
     # The priors act as observations with the residual's noise level: their share of the
     # uncertainty is what keeps an axis the data do not see at about its prior width.
     prior_part = inverse @ (prior_jac.T @ prior_jac) @ inverse * prior_weight**2
-    cov_y = unit_cov * variance + prior_part
+    # Model error: where the model misses part of the frame, different parts of the field
+    # disagree about the unknowns by more than their noise, and the white-noise sandwich
+    # above, however scaled, does not see it (the misfit along the Jacobian went into the
+    # estimate). The cluster-robust sandwich does: each tile of the coarse grid's score
+    # J_c^T r_c is what leaving that tile out would move the estimate by, to first order, and
+    # their spread estimates the data part of the covariance whatever the residual's cause.
+    # Its excess over the noise part (the positive part, so that on a frame the model
+    # explains it adds only its own sampling noise) is the model's share of the uncertainty.
+    tiles = _tile_index(problem.fringe_weight.shape, r_data.shape[0])
+    count = int(tiles.max()) + 1
+    scores = jax.ops.segment_sum(jacobian * r_data[:, None], jnp.asarray(tiles), num_segments=count)
+    robust = inverse @ (scores.T @ scores) @ inverse * (count / (count - 1.0))
+    values, vectors = jnp.linalg.eigh(robust - unit_cov * variance)
+    model_part = (vectors * jnp.clip(values, 0.0, None)[None, :]) @ vectors.T
+    cov_y = unit_cov * variance + model_part + prior_part
     scale = jnp.asarray(WRENCH_SCALE, dtype)
     covariance = cov_y[WRENCH_COORDINATES, WRENCH_COORDINATES] * scale[:, None] * scale[None, :]
     y_out = y + pending
@@ -109,6 +129,19 @@ def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian,
         light=jnp.ones((), dtype),
     )
     return estimate, track
+
+
+def _tile_index(fringe_shape: tuple[int, int, int], size: int) -> np.ndarray:
+    """The tile of the coarse grid (`_TILE_CELLS` cells a side) of every datum of the band
+    residual's layout (amplitude and phase of every family, then the brightness), all
+    families and components of one place in one tile. Static: built from shapes at trace time."""
+    families, m, n = fringe_shape
+    rows, cols = np.divmod(np.arange(m * n), n)
+    per_cell = (rows // _TILE_CELLS) * -(-n // _TILE_CELLS) + cols // _TILE_CELLS
+    tiles = np.concatenate([np.tile(per_cell, 2 * families), per_cell])
+    if tiles.size != size:
+        raise ValueError(f"band residual of {size} values does not have the layout of {fringe_shape} fields")
+    return tiles
 
 
 def _status(result, screen: "_Screen", in_contact, y):

@@ -1,4 +1,5 @@
-"""Vision mode: Fourier notch filtering of the moiré and carrier fringes, and hue-based colour identification.
+"""Vision mode: restoring the see-through image, locating objects before contact, and
+hue-based colour identification.
 
 With no contact the camera sees the scene through both gratings: the scene times a
 periodic transmission. Notching the transmission's spectral peaks (the moiré wavevectors
@@ -6,15 +7,25 @@ K_f, the apparent carrier wavevectors k1', k2, and optionally their harmonics) i
 colour channel leaves the scene times the mean transmission, so colours keep their hue.
 Hue is read in OpenCV's HSV scale (0-179) as in the paper's colour-card experiment, and
 a patch is assigned the nearest of the paper's six colour classes.
+
+A notch leaves everything else of the transmission: the gratings' higher harmonics and
+their aliases, and the moiré's dark bands where little light passes. [`SeeThrough`][]
+does better with a reference frame of the empty view: the frame is the scene times the
+reference's transmission, so a local least-squares ratio of the two recovers the scene
+wherever light passes, and multiplying by the reference's smooth envelope gives the
+image through gratings of uniform mean transmission. [`locate`][] segments what differs
+from the empty view and fits each object's centre, axis and size, in mm in the wrench
+frame.
 """
 
 import dataclasses
+import math
 from collections.abc import Mapping
 
 import cv2
 import numpy as np
 
-from ..physics import wavenumber_grid
+from ..physics import Device, wavenumber_grid
 from ._camera import Frame
 from ._spectrum import spectral_peaks, to_physical_wavevectors
 from ._types import Real
@@ -187,9 +198,8 @@ def identify_colour(histogram: np.ndarray, classes: Mapping[str, Real] = HUE_CLA
     if total <= 0:
         return ColourMatch("none", float("nan"), float("nan"), 0.0)
     # Circular smoothing, then the circular mean of hue around the smoothed peak.
-    offsets = np.arange(-10, 11)
-    kernel = np.exp(-0.5 * (offsets / 3.0) ** 2)
-    smoothed = sum(weight * np.roll(hist, int(o)) for o, weight in zip(offsets, kernel))
+    kernel = np.exp(-0.5 * (np.arange(-10, 11) / 3.0) ** 2)
+    smoothed = np.convolve(np.concatenate([hist[-10:], hist, hist[:10]]), kernel, mode="valid")
     peak = int(np.argmax(smoothed))
     near = (np.arange(180) - peak + 90) % 180 - 90
     window = np.abs(near) <= 10
@@ -230,3 +240,329 @@ class ColourProbe:
             image = image[self.region]
         match = classify_patch(image)
         return f"colour={match.name} hue={match.hue:.1f} support={match.support:.2f}"
+
+
+# ---------------------------------------------------------------------------------------
+# Restoration of the see-through image.
+
+
+def _as_float_frames(image: np.ndarray, name: str) -> np.ndarray:
+    """A colour frame (or a stack of them), uint8/uint16 or float in [0, 1], as float32."""
+    arr = np.asarray(image)
+    if arr.ndim not in (3, 4) or arr.shape[-1] != 3:
+        raise ValueError(f"{name} must be a BGR frame (h, w, 3) or a stack (n, h, w, 3), got shape {arr.shape}")
+    if np.issubdtype(arr.dtype, np.integer):
+        return arr.astype(np.float32) * np.float32(1 / np.iinfo(arr.dtype).max)
+    return arr.astype(np.float32, copy=False)
+
+
+def _envelope(plane: np.ndarray) -> np.ndarray:
+    """The smooth part of an image: a quadratic surface fitted by least squares under a
+    Hann window, which averages the periodic fringes out (they leak little through the
+    window) and keeps the illumination's vignetting, quadratic in radius."""
+    h, w = plane.shape
+    rows, cols = np.mgrid[0:h, 0:w]
+    u, v = (cols - (w - 1) / 2) / w, (rows - (h - 1) / 2) / h
+    basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1).reshape(-1, 6)
+    window = (np.hanning(h)[:, None] * np.hanning(w)[None, :]).reshape(-1)
+    coefficients = np.linalg.lstsq(basis * window[:, None], plane.reshape(-1) * window, rcond=None)[0]
+    return (basis @ coefficients).reshape(h, w)
+
+
+class SeeThrough:
+    r"""Restores see-through frames with a reference of the empty view.
+
+    A frame is $F = o + \mathrm{PSF} * (S\,T)$: the scene $S$ times the transmission $T$ of
+    both gratings and the illumination, over the camera's black level $o$; the reference
+    (the empty view, $S = S_0$ uniform) is $R = o + \mathrm{PSF} * (S_0 T)$. Where $S$ is
+    smooth on the scale of a grating period, the scene relative to the empty view is the
+    local least-squares ratio, each pixel weighted by the light it gets,
+    $$\hat S / S_0 = \frac{G * [(F - o)(R - o)]}{G * (R - o)^2}$$
+    with $G$ a Gaussian window of `window_px` pixels. Dark fringes, where $T$ is near zero,
+    carry little weight instead of dividing noise by zero. The restored image is
+    $o + (\hat S / S_0)\,E$, with $E$ the smooth envelope of $R - o$ (the mean transmission
+    times the illumination, vignetting included): the frame the camera would see through
+    gratings of uniform transmission, which is what the moiré and every harmonic and alias of
+    both gratings are removed from.
+
+    **Arguments:**
+
+    - `reference`: the empty view, BGR `(h, w, 3)` or a stack `(n, h, w, 3)` of frames
+        (averaged, which lowers their noise), uint8 or float in [0, 1]; rectified like the
+        frames, with nothing above the sensor but the backdrop and no contact.
+    - `black_level`: the camera's pixel value for no light (a [`Device`][moirejax.Device]'s
+        `optics.offset`), in [0, 1].
+    - `window_px`: standard deviation (pixels) of the window $G$: wider lowers the noise
+        from dark fringes, narrower keeps finer detail of the scene.
+
+    The camera response is taken as linear (`optics.gamma` = 1).
+    """
+
+    def __init__(self, reference: np.ndarray, *, black_level: Real = 0.0, window_px: Real = 1.6):
+        frames = _as_float_frames(reference, "reference")
+        mean = frames.mean(axis=0) if frames.ndim == 4 else frames
+        if not 0 <= black_level < 1:
+            raise ValueError(f"black_level must be in [0, 1), got {black_level}")
+        if not window_px > 0:
+            raise ValueError(f"window_px must be positive, got {window_px}")
+        light = mean - np.float32(black_level)
+        if float(np.median(light)) <= 2 / 255:
+            raise ValueError("the reference is dark: record it with the light on and nothing above the sensor")
+        self.shape = mean.shape[:2]
+        self.black_level = float(black_level)
+        self.window_px = float(window_px)
+        self._light = light
+        # (F - o) R' = F R' - o R': the black level's share is subtracted after the blur.
+        self._black_light = cv2.GaussianBlur(np.float32(black_level) * light, (0, 0), self.window_px)
+        energy = np.maximum(cv2.GaussianBlur(light * light, (0, 0), self.window_px), np.float32(1e-12))
+        self._inverse_energy = (np.float32(1) / energy).astype(np.float32)
+        self.envelope = np.stack([_envelope(light[..., c]) for c in range(3)], axis=-1).astype(np.float32)
+        self._gain = self.envelope * self._inverse_energy
+        self._coarse_inverse_energy = _every_second(self._inverse_energy)
+
+    def _weighted(self, data: np.ndarray) -> np.ndarray:
+        """$G * [(F - o)(R - o)]$ of a float32 frame (a new array)."""
+        if data.shape != (*self.shape, 3):
+            raise ValueError(f"frame shape {data.shape} differs from the reference's {(*self.shape, 3)}")
+        weighted = cv2.GaussianBlur(cv2.multiply(data, self._light), (0, 0), self.window_px)
+        return cv2.subtract(weighted, self._black_light, dst=weighted)
+
+    def __call__(self, frame: np.ndarray) -> np.ndarray:
+        """The restored BGR image of a frame (uint8 or float in [0, 1]), in the frame's dtype."""
+        arr = np.asarray(frame)
+        restored = self._weighted(_as_float_frames(arr, "frame"))
+        restored = cv2.multiply(restored, self._gain, dst=restored)
+        if np.issubdtype(arr.dtype, np.integer):
+            info = np.iinfo(arr.dtype)
+            restored += np.float32(self.black_level)
+            restored *= np.float32(info.max)
+            return np.clip(np.round(restored), 0, info.max).astype(arr.dtype)
+        restored += np.float32(self.black_level)
+        return np.clip(restored, 0.0, 1.0, out=restored).astype(arr.dtype, copy=False)
+
+
+def restore(frame: np.ndarray, reference: np.ndarray, *, black_level: Real = 0.0, window_px: Real = 1.6) -> np.ndarray:
+    """The see-through image of one frame with the gratings' and the moiré's modulation
+    removed, by [`SeeThrough`][] (build one and reuse it for a stream of frames).
+
+    **Arguments:**
+
+    - `frame`: BGR `(h, w, 3)`, uint8 or float in [0, 1].
+    - `reference`, `black_level`, `window_px`: as for [`SeeThrough`][].
+
+    **Returns:** the restored BGR image, in the frame's dtype.
+    """
+    return SeeThrough(reference, black_level=black_level, window_px=window_px)(frame)
+
+
+def _checked_frame(frame: np.ndarray) -> np.ndarray:
+    arr = np.asarray(frame)
+    if arr.ndim != 3 or arr.shape[-1] != 3:
+        raise ValueError(f"expected a BGR image (h, w, 3), got shape {arr.shape}")
+    return arr
+
+
+# ---------------------------------------------------------------------------------------
+# Objects located before contact.
+
+
+def _every_second(image: np.ndarray) -> np.ndarray:
+    """`image[::2, ::2]`, contiguous (OpenCV's nearest-neighbour halving is that, and faster, for even sizes)."""
+    h, w = image.shape[:2]
+    if h % 2 or w % 2:
+        return np.ascontiguousarray(image[::2, ::2])
+    return cv2.resize(image, (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
+
+
+def _contrast(difference: np.ndarray) -> np.ndarray:
+    """Per pixel, the Euclidean norm over B, G, R of a float32 `(h, w, 3)` difference (overwritten)."""
+    square = np.square(difference, out=difference)
+    norm = square[..., 0] + square[..., 1]
+    norm += square[..., 2]
+    return np.sqrt(norm, out=norm)
+
+
+# Contrast-to-noise ratio at which an object's confidence reaches 1.
+CONFIDENT_CNR = 20.0
+
+
+@dataclasses.dataclass(frozen=True)
+class SeenObject:
+    """An object located in a see-through image.
+
+    **Fields:**
+
+    - `x_mm`, `y_mm`: centre in the wrench frame (mm, x right, y up, origin on the image
+        centre), in the object's plane.
+    - `yaw_deg`: direction of its long axis from +x towards +y, in [-90, 90); `None` for a
+        round object (long and short axes within 10%).
+    - `size_mm`: its longest extent (a disc's or ring's diameter, a rectangle's length).
+    - `hue`: OpenCV hue (0-180) of its colour, `nan` for a gray or dark one.
+    - `colour`: the nearest of [`HUE_CLASSES`][], or `"none"`.
+    - `confidence`: in [0, 1], its contrast over the noise of the empty surroundings
+        (reaching 1 at `CONFIDENT_CNR`) times its solidity (area over convex hull area).
+    """
+
+    x_mm: float
+    y_mm: float
+    yaw_deg: float | None
+    size_mm: float
+    hue: float
+    colour: str
+    confidence: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Sighting:
+    """What [`locate`][] saw in one image.
+
+    **Fields:**
+
+    - `objects`: the [`SeenObject`][]s, most confident first.
+    - `status`: `"ok"` (objects found), `"empty"` (nothing differs from the empty view),
+        `"dark"` (no light above the black level) or `"saturated"` (most pixels clipped):
+        the last three with no objects.
+    """
+
+    objects: list[SeenObject]
+    status: str
+
+
+def locate(
+    image: np.ndarray,
+    device: Device,
+    *,
+    see_through: SeeThrough | None = None,
+    height: Real | None = None,
+    min_contrast: Real = 0.25,
+    min_size_mm: Real = 1.0,
+) -> Sighting:
+    r"""Objects above the sensor in a see-through frame: segmented by their colour difference
+    from the empty view, then fitted.
+
+    Each pixel's scene relative to the empty view is `(restored - o) / E` (the envelope $E$ of [`SeeThrough`][])
+    (1 on the backdrop); pixels whose colour differs from 1 by more than `min_contrast`
+    (Euclidean, over B, G, R) seed an object; objects are found on every second pixel and
+    measured at full resolution inside their boxes, so that a 512 x 512 frame takes a few
+    milliseconds (`benchmarks/vision.py`). Its outline is then taken at half its own
+    contrast, where a defocused edge is symmetric, so the blur of a high object does not
+    grow it. From the outline's moments: the centre; from the second moments, the long
+    axis; from the minimum-area rectangle, the extent. Pixels are converted to mm in the
+    object's plane, `(Z + a + h) / Z / px_per_mm` per pixel ([`scene_magnification`][moirejax.scene_magnification]),
+    with `h = height`, or 0 (the contact surface) when the height is not known.
+
+    **Arguments:**
+
+    - `image`: with `see_through`, the raw BGR frame, which is checked for exposure and then
+        restored; without, an image restored already. uint8 or float in [0, 1].
+    - `device`: the sensor (resolution, `Z`, `a` and `optics.offset`, the black level).
+    - `see_through`: the [`SeeThrough`][] of the unit: it restores the frame, and its `envelope` is the empty view.
+        Without it the image's own smooth envelope stands in for the empty view, which is
+        right only while the objects are small against the view.
+    - `height`: the objects' height (mm) above the contact surface, if known.
+    - `min_contrast`: the relative colour difference that makes a pixel part of an object.
+    - `min_size_mm`: smaller objects (equivalent diameter, object plane) are ignored.
+
+    **Returns:** a [`Sighting`][]: the objects and a status; never an object on an empty,
+    dark or saturated frame.
+    """
+    frame = _as_float_frames(_checked_frame(image), "image")
+    h, w = frame.shape[:2]
+    if height is not None and not height >= 0:
+        raise ValueError(f"height must be >= 0 mm above the contact surface, got {height}")
+    if not min_contrast > 0:
+        raise ValueError(f"min_contrast must be positive, got {min_contrast}")
+    black = float(device.optics.offset)
+    sample = frame[::4, ::4]
+    brightest = np.maximum(np.maximum(sample[..., 0], sample[..., 1]), sample[..., 2])
+    if np.mean(brightest >= 254 / 255) > 0.5:
+        return Sighting([], "saturated")
+    if float(np.percentile(brightest, 99)) <= black + 2 / 255:
+        return Sighting([], "dark")
+    # The scene relative to the empty view is `numerator * scale`, formed only where it is needed.
+    if see_through is None:
+        numerator = frame - np.float32(black)
+        base = np.stack([_envelope(numerator[..., c]) for c in range(3)], axis=-1)
+        scale = (1 / np.maximum(base, 1e-6)).astype(np.float32)
+        coarse_scale = _every_second(scale)
+    else:
+        numerator, scale = see_through._weighted(frame), see_through._inverse_energy
+        coarse_scale = see_through._coarse_inverse_energy
+    # Objects are found on every second pixel (the restored image is smooth on that scale),
+    # then each is measured at full resolution inside its box.
+    coarse = cv2.multiply(_every_second(numerator), coarse_scale)
+    coarse = _contrast(np.subtract(coarse, np.float32(1), out=coarse))
+    # Pixel noise of the contrast map, from its fine-scale residual (robust to the objects),
+    # on every fourth pixel.
+    residual = (coarse - cv2.GaussianBlur(coarse, (0, 0), 1.0))[::2, ::2]
+    noise = 1.4826 * float(np.median(np.abs(residual))) + 1e-6
+    magnification = (float(device.Z) + float(device.a) + (0.0 if height is None else float(height))) / float(device.Z)
+    mm_per_px = magnification / float(device.px_per_mm)
+    min_area_px = math.pi / 4 * (min_size_mm / mm_per_px) ** 2
+    objects, measured = [], set()
+    coarse_seeds, _ = cv2.findContours(
+        (coarse > min_contrast).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE
+    )
+    for coarse_seed in coarse_seeds:
+        x0, y0, bw, bh = cv2.boundingRect(coarse_seed)
+        if 4 * bw * bh < min_area_px / 2:
+            continue
+        # The box at full resolution, with room for the outline's margin.
+        margin = max(bw, bh) // 2 + 6
+        b0, b1 = max(2 * y0 - margin, 0), min(2 * (y0 + bh) + margin, h)
+        a0, a1 = max(2 * x0 - margin, 0), min(2 * (x0 + bw) + margin, w)
+        relative = numerator[b0:b1, a0:a1] * scale[b0:b1, a0:a1]
+        contrast = _contrast(relative - np.float32(1))
+        seeds = (contrast > min_contrast).astype(np.uint8)
+        contours, _ = cv2.findContours(seeds, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE, offset=(a0, b0))
+        # The full-resolution seed through a pixel of the coarse one (the same value there).
+        point = (2 * float(coarse_seed[0, 0, 0]), 2 * float(coarse_seed[0, 0, 1]))
+        inside = [c for c in contours if cv2.pointPolygonTest(c, point, False) >= 0]
+        if not inside:
+            continue
+        seed = min(inside, key=cv2.contourArea)
+        x0, y0, bw, bh = cv2.boundingRect(seed)
+        if (x0, y0, bw, bh) in measured or cv2.contourArea(seed) < min_area_px:
+            continue
+        measured.add((x0, y0, bw, bh))
+        pad = max(bw, bh) // 4 + 2
+        r0, r1, c0, c1 = max(y0 - pad, b0), min(y0 + bh + pad, b1), max(x0 - pad, a0), min(x0 + bw + pad, a1)
+        box = (slice(r0 - b0, r1 - b0), slice(c0 - a0, c1 - a0))
+        seed_mask = np.zeros((r1 - r0, c1 - c0), np.uint8)
+        cv2.drawContours(seed_mask, [seed], -1, 1, thickness=cv2.FILLED, offset=(-c0, -r0))
+        # The seed's own pixels (not a ring's hole) give the object's contrast.
+        level = float(np.median(contrast[box][(seed_mask > 0) & (seeds[box] > 0)]))
+        outline_mask = (contrast[box] > level / 2).astype(np.uint8)
+        outlines, _ = cv2.findContours(outline_mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE, offset=(c0, r0))
+        outline = max(outlines, key=cv2.contourArea)
+        moments = cv2.moments(outline)
+        if moments["m00"] <= 0:
+            continue
+        cx, cy = moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]
+        mu20, mu02, mu11 = (moments[k] / moments["m00"] for k in ("mu20", "mu02", "mu11"))
+        spread = math.hypot((mu20 - mu02) / 2, mu11)
+        major, minor = (mu20 + mu02) / 2 + spread, (mu20 + mu02) / 2 - spread
+        # Image rows run down: the axis angle in the wrench frame (y up) is the image angle negated.
+        yaw = -0.5 * math.degrees(math.atan2(2 * mu11, mu20 - mu02))
+        round_object = minor > 0 and math.sqrt(major / minor) < 1.1
+        # Contour points are pixel centres: the extent reaches half a pixel beyond each end.
+        extent = max(cv2.minAreaRect(outline)[1]) + 1.0
+        hull_area = cv2.contourArea(cv2.convexHull(outline))
+        solidity = moments["m00"] / hull_area if hull_area > 0 else 0.0
+        fill = np.zeros((r1 - r0, c1 - c0), np.uint8)
+        cv2.drawContours(fill, [outline], -1, 1, thickness=cv2.FILLED, offset=(-c0, -r0))
+        # The backdrop maps to mid-gray, so that the object's hue is read at a usable value.
+        match = identify_colour(hue_histogram(np.clip(relative[box] * 0.5, 0.0, 1.0), mask=fill > 0))
+        objects.append(
+            SeenObject(
+                x_mm=(cx - (w - 1) / 2) * mm_per_px,
+                y_mm=((h - 1) / 2 - cy) * mm_per_px,
+                yaw_deg=None if round_object else (yaw + 90) % 180 - 90,
+                size_mm=extent * mm_per_px,
+                hue=match.hue,
+                colour=match.name,
+                confidence=float(min(1.0, level / noise / CONFIDENT_CNR) * min(solidity, 1.0)),
+            )
+        )
+    objects.sort(key=lambda o: -o.confidence)
+    return Sighting(objects, "ok" if objects else "empty")

@@ -16,6 +16,21 @@ from ._contacts import (
     shape_schedule as shape_schedule,
     traction_deformation as traction_deformation,
 )
+from ._scene import (
+    BACKDROP_RGB as BACKDROP_RGB,
+    empty_scene_reference as empty_scene_reference,
+    render_scene as render_scene,
+    scene_defocus as scene_defocus,
+    scene_disc as scene_disc,
+    scene_magnification as scene_magnification,
+    scene_rectangle as scene_rectangle,
+    scene_ring as scene_ring,
+    SCENE_SHAPES as SCENE_SHAPES,
+    scene_texture as scene_texture,
+    SCENE_TEXTURES as SCENE_TEXTURES,
+    SceneFrame as SceneFrame,
+    SceneObject as SceneObject,
+)
 from ._simulate import (
     Deviations as Deviations,
     load_schedule as load_schedule,
