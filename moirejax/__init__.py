@@ -36,13 +36,17 @@ from .calibration import (
     wrench_metrics as wrench_metrics,
 )
 from .data import (
+    align_ft as align_ft,
     Batch as Batch,
     Dataset as Dataset,
     DatasetWriter as DatasetWriter,
     export_recording as export_recording,
+    fringe_change as fringe_change,
+    FtAlignment as FtAlignment,
     import_recording as import_recording,
     ImportReport as ImportReport,
     open_dataset as open_dataset,
+    read_ft_log as read_ft_log,
     unit_frame as unit_frame,
 )
 from .design import (

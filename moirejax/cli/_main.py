@@ -185,15 +185,29 @@ def _cmd_import(args: argparse.Namespace) -> int:
     from ..data import import_recording
     from ..physics import load_device
 
+    if args.wrench is None and args.ft is None:
+        raise ValueError("--wrench is required, unless the wrenches come from a force/torque log (--ft)")
+    if args.ft is None and (args.align or args.max_offset is not None):
+        raise ValueError("--align and --max-offset apply to a force/torque log: give it with --ft")
     # Validate the device and the outputs before converting thousands of frames.
     if not Path(args.frames).is_dir():
         raise DataError(f"{args.frames}: no such folder")
-    if not Path(args.wrench).is_file():
-        raise DataError(f"{args.wrench}: no such file")
+    for path in (args.wrench, args.ft):
+        if path is not None and not Path(path).is_file():
+            raise DataError(f"{path}: no such file")
     load_device(args.device)
     _check_new_folder(args.out, args.overwrite)
     report = import_recording(
-        args.frames, args.wrench, args.device, args.out, skip_bad=args.skip_bad, overwrite=args.overwrite
+        args.frames,
+        args.wrench,
+        args.device,
+        args.out,
+        skip_bad=args.skip_bad,
+        overwrite=args.overwrite,
+        fps=args.fps,
+        ft_csv=args.ft,
+        align=args.align,
+        max_offset=args.max_offset,
     )
     print(report)
     return 0
@@ -632,7 +646,35 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("import", help="turn image files plus a force/torque CSV into a dataset")
     p.add_argument("--frames", required=True, metavar="DIR", help="folder of images")
-    p.add_argument("--wrench", required=True, metavar="CSV", help="columns frame,fx,fy,fz,tx,ty,tz[,t][,contact]")
+    p.add_argument(
+        "--wrench",
+        metavar="CSV",
+        help="columns frame,fx,fy,fz,tx,ty,tz[,t][,contact]; with --ft only frame, t and contact are read, "
+        "and without it the frames are the images in DIR in name order",
+    )
+    p.add_argument(
+        "--ft",
+        metavar="CSV",
+        help="a force/torque sensor's log on its own clock, any rate: a time column (t, time or timestamp; s) "
+        "and fx,fy,fz,tx,ty,tz; its wrench is interpolated to each frame's time, frames outside it are dropped",
+    )
+    p.add_argument(
+        "--align",
+        action="store_true",
+        help="estimate the clock offset of --ft by cross-correlating its |F| with the frames' fringe change "
+        "(without it the log runs on the frames' clock)",
+    )
+    p.add_argument(
+        "--max-offset",
+        type=_non_negative_float,
+        metavar="S",
+        help="with --align, the largest clock offset considered, s (default: any at which the two overlap)",
+    )
+    p.add_argument(
+        "--fps",
+        type=_positive_float,
+        help="frame rate, recorded in the dataset; with --ft, frames without a t are at index / FPS",
+    )
     p.add_argument("--device", required=True, metavar="FILE", help="device JSON of the unit")
     p.add_argument("--out", required=True, metavar="DATASET")
     p.add_argument("--skip-bad", action="store_true", help="skip missing or unreadable frames (listed)")

@@ -23,6 +23,7 @@ import io
 import math
 import os
 import shutil
+import warnings
 from collections.abc import Iterator, Mapping
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal, NamedTuple
@@ -40,11 +41,13 @@ from .._fileio import (
     atomic_write_text,
     check_output_folder,
     DataError,
+    DataWarning,
     read_json,
     staging_folder,
     validate_json,
     write_json,
 )
+from ._ft import _wrench_at, align_ft, fringe_change
 
 
 FORMAT = "moirejax-dataset"
@@ -55,6 +58,10 @@ WRENCH_NAME = "wrench.csv"
 CONTACTS_NAME = "contact.csv"
 
 _OPTIONAL_COLUMNS = ("t", "contact")
+# The names a force/torque log's time column may have (any case).
+FT_TIME_COLUMNS = ("t", "time", "timestamp")
+# The image files (by suffix, any case) that make up a folder of frames, wherever one is read.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm")
 _MAXVAL = {8: 255, 16: 65535}
 # Scalars as simulators hand them over (Python or NumPy).
 _Real = float | int | np.floating | np.integer
@@ -136,14 +143,16 @@ class _WrenchTable:
     ignored_columns: tuple[str, ...]
 
 
-def _read_wrench_table(path: Path, *, strict: bool) -> _WrenchTable:
+def _read_wrench_table(path: Path, *, strict: bool, frames_only: bool = False) -> _WrenchTable:
     """Parse a `frame,fx,fy,fz,tx,ty,tz[,t][,contact]` CSV.
 
     `strict` (a dataset's own `wrench.csv`) rejects unknown columns and non-finite wrenches;
     otherwise (a lab recording) unknown columns are ignored and non-finite wrench values are
-    kept as NaN/inf for the caller to report per frame.
+    kept as NaN/inf for the caller to report per frame. `frames_only` (the frame list of a
+    recording whose wrench comes from a force/torque log) reads `frame`, `t` and `contact`
+    only, ignoring any wrench columns; the wrenches are NaN.
     """
-    required = ("frame", *WRENCH_AXES)
+    required = ("frame",) if frames_only else ("frame", *WRENCH_AXES)
     with _open_csv(path) as f:
         reader = csv.reader(f)
         header = _read_header(reader, path, required)
@@ -172,7 +181,8 @@ def _read_wrench_table(path: Path, *, strict: bool) -> _WrenchTable:
             first_row_of[name] = row
             frames.append(name)
             rows.append(row)
-            wrenches.append([_parse_number(record[c], where, c, require_finite=strict) for c in WRENCH_AXES])
+            if not frames_only:
+                wrenches.append([_parse_number(record[c], where, c, require_finite=strict) for c in WRENCH_AXES])
             if has_t:
                 times.append(_parse_number(record["t"], where, "t", require_finite=True))
             if has_contact:
@@ -183,7 +193,9 @@ def _read_wrench_table(path: Path, *, strict: bool) -> _WrenchTable:
     return _WrenchTable(
         frames=tuple(frames),
         rows=tuple(rows),
-        wrenches=np.array(wrenches, dtype=np.float64).reshape(len(frames), 6),
+        wrenches=np.full((len(frames), 6), np.nan)
+        if frames_only
+        else np.array(wrenches, dtype=np.float64).reshape(len(frames), 6),
         t=np.array(times, dtype=np.float64) if has_t else None,
         contact=np.array(contacts, dtype=bool) if has_contact else None,
         ignored_columns=tuple(extra),
@@ -210,6 +222,73 @@ def _read_latents(path: Path, frames: tuple[str, ...]) -> dict[str, np.ndarray]:
         raise DataError(f"{path}: {len(values)} rows, but {WRENCH_NAME} has {len(frames)}")
     table = np.array(values, dtype=np.float64).reshape(len(frames), len(columns))
     return {name: table[:, k] for k, name in enumerate(columns)}
+
+
+def read_ft_log(path: str | os.PathLike) -> tuple[Float64[np.ndarray, " m"], Float64[np.ndarray, "m 6"]]:
+    """Read a force/torque sensor's log: its sample times and wrenches.
+
+    The CSV has a header row naming a time column (`t`, `time` or `timestamp`; seconds on
+    the sensor's own clock, any origin) and `fx,fy,fz,tx,ty,tz` (N and N·m, in the
+    convention [`WRENCH_CONVENTION`][moirejax.WRENCH_CONVENTION]); names match in any case
+    and other columns are ignored. Times must increase from row to row and every value must
+    be finite. [`import_recording`][] aligns such a log to the frames of a recording.
+
+    **Arguments:**
+
+    - `path`: the CSV file.
+
+    **Returns:**
+
+    `(times, wrenches)`: the sample times (s) and the wrench of each sample.
+
+    **Raises:** [`DataError`][] naming the file, row and column of the first problem.
+    """
+    path = Path(path)
+    with _open_csv(path) as f:
+        reader = csv.reader(f)
+        try:
+            header = [name.strip().lower() for name in next(reader)]
+        except StopIteration:
+            raise DataError(f"{path}: file is empty (expected a header row)") from None
+        time_columns = [name for name in FT_TIME_COLUMNS if name in header]
+        if len(time_columns) != 1:
+            found = "none" if not time_columns else " and ".join(map(repr, time_columns))
+            raise DataError(
+                f"{path}: needs exactly one time column ({', '.join(map(repr, FT_TIME_COLUMNS))}), found {found} "
+                f"(header is {','.join(header)!r})"
+            )
+        _read_header(iter([header]), path, (time_columns[0], *WRENCH_AXES))
+        time_column = time_columns[0]
+        times: list[float] = []
+        wrenches: list[list[float]] = []
+        for row, record in _records(reader, path, header):
+            where = f"{path} row {row}"
+            t = _parse_number(record[time_column], where, time_column, require_finite=True)
+            if times and not t > times[-1]:
+                raise DataError(
+                    f"{where}: field {time_column!r}: {t:g} s does not follow the previous row's "
+                    f"{times[-1]:g} s (times must increase)"
+                )
+            times.append(t)
+            wrenches.append([_parse_number(record[c], where, c, require_finite=True) for c in WRENCH_AXES])
+    if len(times) < 2:
+        raise DataError(f"{path}: {len(times)} data row(s); a force/torque log needs at least 2")
+    return np.array(times, dtype=np.float64), np.array(wrenches, dtype=np.float64)
+
+
+def _frame_list(frames_dir: Path) -> _WrenchTable:
+    """The image files of a folder, in name order, as the frames of a recording."""
+    names = sorted(p.name for p in frames_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not names:
+        raise DataError(f"{frames_dir}: no image files ({', '.join(sorted(IMAGE_SUFFIXES))})")
+    return _WrenchTable(
+        frames=tuple(names),
+        rows=(0,) * len(names),
+        wrenches=np.full((len(names), 6), np.nan),
+        t=None,
+        contact=None,
+        ignored_columns=(),
+    )
 
 
 def _format_csv(header: list[str], rows: list[list[Any]]) -> str:
@@ -334,8 +413,8 @@ class DatasetWriter:
     - `frame_shape`: `(height, width)`; by default taken from the first frame.
     - `bit_depth`: 8 or 16 bits per PNG pixel.
     - `source`: free text saying where the data came from.
-    - `fps`, `protocol`, `fidelity`, `seed`, `true_device`, `metadata`: optional manifest
-      fields (see `data_schema/dataset.schema.json`).
+    - `fps`, `protocol`, `fidelity`, `seed`, `true_device`, `metadata`, `ft_alignment`:
+      optional manifest fields (see `data_schema/dataset.schema.json`).
     - `overwrite`: replace the manifest, `wrench.csv`, latent CSV and `frames/` of a non-empty
       `path` (other files there are left alone).
     """
@@ -354,6 +433,7 @@ class DatasetWriter:
         seed: int | None = None,
         true_device: dict | None = None,
         metadata: dict | None = None,
+        ft_alignment: dict | None = None,
         overwrite: bool = False,
     ):
         if bit_depth not in _MAXVAL:
@@ -370,6 +450,7 @@ class DatasetWriter:
             fidelity=_plain(fidelity),
             seed=seed,
             metadata=metadata,
+            ft_alignment=ft_alignment,
         )
         self._manifest: dict[str, Any] = {
             "format": FORMAT,
@@ -722,9 +803,14 @@ class ImportReport:
     """What [`import_recording`][] did.
 
     - `out_dir`: the new dataset folder.
-    - `n_frames`: frames written; `n_rows`: data rows in the recording's CSV.
+    - `n_frames`: frames written; `n_rows`: frames the recording lists (data rows of its
+      CSV, or image files in its folder).
     - `skipped`: `(frame name, reason)` for every frame left out (only with `skip_bad`).
     - `ignored_columns`: CSV columns that are not part of the dataset format.
+    - `ft_alignment`: with a force/torque log, how it was put on the frames' clock, as
+      recorded in the manifest: the log's file name, `offset_s` (its clock minus the
+      frames'), whether the offset was `estimated`, the correlation `peak` if it was, and
+      the number of frames outside its span (`frames_outside`, dropped).
     """
 
     out_dir: Path
@@ -734,6 +820,7 @@ class ImportReport:
     bit_depth: int
     skipped: tuple[tuple[str, str], ...]
     ignored_columns: tuple[str, ...]
+    ft_alignment: dict[str, Any] | None = None
 
     def __str__(self) -> str:
         lines = [
@@ -741,15 +828,112 @@ class ImportReport:
             f"({self.frame_shape[0]}x{self.frame_shape[1]}, {self.bit_depth}-bit) "
             f"into {self.out_dir}"
         ]
+        if self.ft_alignment is not None:
+            ft = self.ft_alignment
+            how = f"estimated, correlation peak {ft['peak']:.3f}" if ft["estimated"] else "not estimated"
+            lines.append(
+                f"force/torque log {ft['ft_log']}: clock offset {ft['offset_s']:+.4f} s ({how}); "
+                f"{ft['frames_outside']} frames outside its span dropped"
+            )
         if self.ignored_columns:
             lines.append(f"ignored columns: {', '.join(self.ignored_columns)}")
         lines += [f"skipped {name}: {reason}" for name, reason in self.skipped]
         return "\n".join(lines)
 
 
+# Below this correlation peak an estimated clock offset is doubtful (see FtAlignment.peak).
+_WEAK_PEAK = 0.5
+
+
+def _frame_activity(frames_dir: Path, names: tuple[str, ...], progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    """[`fringe_change`][] of every readable frame from the first readable one, and which
+    frames those are (unreadable or wrong-size frames are left to the import to report)."""
+    activity = np.zeros(len(names))
+    readable = np.zeros(len(names), dtype=bool)
+    reference = None
+    for i, name in enumerate(tqdm(names, disable=not progress, unit="frame", desc="align")):
+        try:
+            image = unit_frame(_load_gray(frames_dir / name))
+        except DataError:
+            continue
+        if reference is None:
+            reference = image
+        if image.shape == reference.shape:
+            activity[i], readable[i] = fringe_change(image, reference), True
+    return activity, readable
+
+
+def _put_on_frame_clock(
+    table: _WrenchTable,
+    frames_dir: Path,
+    listing: Path,
+    ft_csv: Path,
+    *,
+    fps: _Real | None,
+    align: bool,
+    max_offset: float | None,
+    progress: bool,
+) -> tuple[_WrenchTable, np.ndarray, dict[str, Any]]:
+    """Replace the table's wrenches by a force/torque log's, interpolated to the frames'
+    times (the table's `t`, else `index / fps`), with the clock offset estimated if `align`.
+
+    Returns the table of the frames inside the log's span, which of the old table's frames
+    those are, and the manifest's `ft_alignment` record.
+    """
+    ft_times, ft_wrench = read_ft_log(ft_csv)
+    if table.t is not None:
+        times = table.t
+    elif fps is not None:
+        times = np.arange(len(table.frames)) / float(fps)
+    else:
+        raise DataError(
+            f"{listing}: the frames have no capture times (no 't' column); give the frame rate with {ARGUMENT}",
+            argument="fps",
+            python="fps=FRAMES_PER_SECOND",
+        )
+    record: dict[str, Any] = {"ft_log": ft_csv.name}
+    if align:
+        activity, readable = _frame_activity(frames_dir, table.frames, progress)
+        try:
+            alignment = align_ft(times[readable], activity[readable], ft_times, ft_wrench, max_offset=max_offset)
+        except ValueError as e:
+            raise DataError(f"{ft_csv}: {e}") from None
+        offset = alignment.offset_s
+        record.update(offset_s=offset, estimated=True, peak=alignment.peak)
+        if alignment.peak < _WEAK_PEAK:
+            warnings.warn(
+                f"{ft_csv}: the clock offset {offset:+.4f} s is doubtful (correlation peak "
+                f"{alignment.peak:.2f}, below {_WEAK_PEAK}); check the imported wrenches",
+                DataWarning,
+                stacklevel=3,
+            )
+    else:
+        offset = 0.0
+        record.update(offset_s=offset, estimated=False)
+    wrench, kept = _wrench_at(times, ft_times, ft_wrench, offset)
+    if not np.any(kept):
+        # Only without `align`: an estimated offset always overlaps some frames.
+        raise DataError(
+            f"{ft_csv}: no frame lies inside the log's span ({ft_times[0]:g} to {ft_times[-1]:g} s "
+            f"on its clock, frames at {times[0]:g} to {times[-1]:g} s); pass {ARGUMENT} to "
+            f"estimate the clock offset",
+            argument="align",
+        )
+    record["frames_outside"] = int(np.sum(~kept))
+    table = dataclasses.replace(
+        table,
+        frames=tuple(name for name, inside in zip(table.frames, kept) if inside),
+        rows=tuple(row for row, inside in zip(table.rows, kept) if inside),
+        wrenches=wrench[kept],
+        t=times[kept],
+        contact=None if table.contact is None else table.contact[kept],
+    )
+    return table, kept, record
+
+
 def import_recording(
     frames_dir: str | os.PathLike,
-    wrench_csv: str | os.PathLike,
+    wrench_csv: str | os.PathLike | None,
     device: dict | str | os.PathLike,
     out_dir: str | os.PathLike,
     *,
@@ -760,6 +944,9 @@ def import_recording(
     protocol: str | None = None,
     source: str | None = None,
     overwrite: bool = False,
+    ft_csv: str | os.PathLike | None = None,
+    align: bool = False,
+    max_offset: float | None = None,
 ) -> ImportReport:
     """Convert a lab recording (image files plus a force/torque CSV) into a dataset.
 
@@ -768,52 +955,87 @@ def import_recording(
     any format OpenCV reads are converted to grayscale PNG named like the source with a
     `.png` suffix, and must all have the size of the first one.
 
+    With `ft_csv`, the wrenches come instead from a force/torque sensor's log on its own
+    clock and at its own rate ([`read_ft_log`][] describes the file): `wrench_csv`, if
+    given, only lists the frames (`frame`) with their capture times (`t`) and in-contact
+    flags (`contact`), and any wrench columns in it are ignored; without it the frames are
+    the image files of `frames_dir` in name order. Frames without a `t` are at
+    `index / fps`. The log's wrench is interpolated linearly to each frame's time, and
+    frames outside the log's span are dropped and counted. Without `align` the log is
+    taken to run on the frames' clock; with `align` the offset between the clocks is
+    estimated from the data by [`align_ft`][], from the [`fringe_change`][] of each frame
+    from the first (so the recording should start without contact), reading every frame
+    twice. The manifest records the offset, its correlation peak and the dropped count
+    (`ft_alignment`), and `wrench.csv` the frames' times; a peak below 0.5 warns
+    ([`DataWarning`][]).
+
     Every missing, unreadable or wrong-size frame and every non-finite wrench is collected;
     then either the import fails with one [`DataError`][] listing them all (leaving `out_dir`
     without a manifest), or with `skip_bad=True` those frames are left out and reported.
 
     **Arguments:**
 
-    - `frames_dir`, `wrench_csv`: the recording.
+    - `frames_dir`, `wrench_csv`: the recording (`wrench_csv` may be `None` with `ft_csv`).
     - `device`: the nominal device JSON object, or a path to a device JSON file (embedded).
     - `out_dir`: the new dataset folder (empty, or replaced with `overwrite=True`).
     - `bit_depth`: 8 or 16; by default that of the first readable image.
-    - `fps`, `protocol`, `source`: manifest fields (`source` defaults to the input paths).
+    - `fps`, `protocol`, `source`: manifest fields (`source` defaults to the input paths);
+      `fps` also times frames that have no `t`, with `ft_csv`.
     - `progress`: show a tqdm progress bar.
+    - `ft_csv`: a force/torque log to take the wrenches from.
+    - `align`: estimate the log's clock offset from the data.
+    - `max_offset`: with `align`, the largest clock offset considered (s); by default any
+      at which the log and the frames overlap.
 
     **Returns:**
 
     An [`ImportReport`][].
     """
-    frames_dir, wrench_csv, out_dir = Path(frames_dir), Path(wrench_csv), Path(out_dir)
+    frames_dir, out_dir = Path(frames_dir), Path(out_dir)
+    wrench_csv = None if wrench_csv is None else Path(wrench_csv)
+    ft_csv = None if ft_csv is None else Path(ft_csv)
+    if wrench_csv is None and ft_csv is None:
+        raise ValueError("a recording needs wrench_csv, or ft_csv to take its wrenches from")
+    if ft_csv is None and (align or max_offset is not None):
+        raise ValueError("align and max_offset apply to a force/torque log (ft_csv) only")
     if bit_depth not in (None, *_MAXVAL):
         raise ValueError(f"bit_depth must be 8, 16 or None, got {bit_depth}")
-    for source_path in (frames_dir, wrench_csv):
-        if source_path.resolve().is_relative_to(out_dir.resolve()):
+    for source_path in (frames_dir, wrench_csv, ft_csv):
+        if source_path is not None and source_path.resolve().is_relative_to(out_dir.resolve()):
             raise DataError(f"{source_path}: the recording must not lie inside out_dir {out_dir}")
     if not frames_dir.is_dir():
         raise DataError(f"{frames_dir}: no such folder")
     check_output_folder(out_dir, argument="out_dir")
     _check_output_dir(out_dir, overwrite)
-    table = _read_wrench_table(wrench_csv, strict=False)
-    if not table.frames:
-        raise DataError(f"{wrench_csv}: no data rows")
+    if wrench_csv is None:
+        table = _frame_list(frames_dir)
+    else:
+        table = _read_wrench_table(wrench_csv, strict=False, frames_only=ft_csv is not None)
+        if not table.frames:
+            raise DataError(f"{wrench_csv}: no data rows")
+    # What names the frames in messages: the CSV (with its rows) or the folder.
+    listing = frames_dir if wrench_csv is None else wrench_csv
     if not isinstance(device, dict):
         device_path = device
         device = read_json(device_path)
         if not isinstance(device, dict):
             raise DataError(f"{device_path}: not a JSON object")
     out_names = [str(PurePosixPath(name).with_suffix(".png")) for name in table.frames]
-    first_row_of: dict[str, int] = {}
+    first_of: dict[str, str] = {}
     for name, out_name, row in zip(table.frames, out_names, table.rows):
-        if out_name in first_row_of:
-            raise DataError(
-                f"{wrench_csv} row {row}: field 'frame': {name!r} would be stored as "
-                f"{out_name!r}, like the frame in row {first_row_of[out_name]}"
-            )
-        first_row_of[out_name] = row
+        if out_name in first_of:
+            where = f"{listing} row {row}: field 'frame'" if row else str(listing)
+            raise DataError(f"{where}: {name!r} would be stored as {out_name!r}, like {first_of[out_name]!r}")
+        first_of[out_name] = name
     if source is None:
-        source = f"imported from {wrench_csv} and {frames_dir}"
+        source = f"imported from {ft_csv or wrench_csv} and {frames_dir}"
+    n_rows = len(table.frames)
+    ft_alignment = None
+    if ft_csv is not None:
+        table, kept, ft_alignment = _put_on_frame_clock(
+            table, frames_dir, listing, ft_csv, fps=fps, align=align, max_offset=max_offset, progress=progress
+        )
+        out_names = [out_name for out_name, inside in zip(out_names, kept) if inside]
 
     problems: list[tuple[int, str, str]] = []
     writer: DatasetWriter | None = None
@@ -846,7 +1068,7 @@ def import_recording(
                     continue
                 if not np.all(np.isfinite(table.wrenches[i])):
                     problems.append(
-                        (row, name, f"{wrench_csv} row {row}: wrench {table.wrenches[i].tolist()} is not finite")
+                        (row, name, f"{listing} row {row}: wrench {table.wrenches[i].tolist()} is not finite")
                     )
                     continue
                 if problems and not skip_bad:
@@ -861,6 +1083,7 @@ def import_recording(
                         source=source,
                         fps=fps,
                         protocol=protocol,
+                        ft_alignment=ft_alignment,
                     )
                 writer.add(
                     image,
@@ -871,10 +1094,10 @@ def import_recording(
                 )
                 n_written += 1
             if problems and (not skip_bad or writer is None):
-                listing = "\n".join(f"  row {row}: {message}" for row, _, message in problems)
+                lines = "\n".join(f"  row {row}: {message}" if row else f"  {message}" for row, _, message in problems)
                 hint = "" if skip_bad else f" (pass {ARGUMENT} to skip them)"
                 raise DataError(
-                    f"{len(problems)} of {len(table.frames)} frames in {wrench_csv} could not be imported{hint}:\n{listing}",
+                    f"{len(problems)} of {len(table.frames)} frames in {listing} could not be imported{hint}:\n{lines}",
                     argument=None if skip_bad else "skip_bad",
                 )
             assert writer is not None and first_shape is not None
@@ -889,11 +1112,12 @@ def import_recording(
     return ImportReport(
         out_dir=out_dir,
         n_frames=n_written,
-        n_rows=len(table.frames),
+        n_rows=n_rows,
         frame_shape=first_shape,
         bit_depth=writer.bit_depth,
         skipped=tuple((name, message) for _, name, message in problems),
         ignored_columns=table.ignored_columns,
+        ft_alignment=ft_alignment,
     )
 
 

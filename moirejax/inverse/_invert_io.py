@@ -12,6 +12,7 @@ import numpy as np
 
 from .._conventions import WRENCH_AXES
 from .._fileio import atomic_write_text, check_output_file, DataError, DataWarning
+from ..data import IMAGE_SUFFIXES
 from ._inversion import Inverter
 from ._invert import _invert_chunk, frame_tracker
 from ._state import Estimate, Status
@@ -27,9 +28,6 @@ CSV_HEADER = (
     "status",
     "message",
 )
-
-
-_IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
 
 
 def check_source(source: str | Path) -> str:
@@ -54,8 +52,8 @@ def check_source(source: str | Path) -> str:
                 f"{path / 'manifest.json'}: no such file; the folder has a dataset's frames/ or wrench.csv but no "
                 "manifest, so the dataset is incomplete (was its writer interrupted?)"
             )
-        if not any(p.suffix.lower() in _IMAGE_SUFFIXES for p in path.iterdir()):
-            raise DataError(f"{path}: no image files ({', '.join(sorted(_IMAGE_SUFFIXES))}) and no dataset manifest")
+        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir()):
+            raise DataError(f"{path}: no image files ({', '.join(sorted(IMAGE_SUFFIXES))}) and no dataset manifest")
         return "folder"
     if not path.exists():
         raise DataError(f"{path}: no such dataset, folder or video")
@@ -90,7 +88,7 @@ def iter_source_frames(
             yield dataset.frame_names[i], frame, error
         return
     if kind == "folder":
-        names = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
+        names = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         for p in names:
             image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             if image is None:

@@ -59,6 +59,8 @@ from ._sinks import (
     WrenchRecord as WrenchRecord,
 )
 from ._vision import (
+    Classification as Classification,
+    classify as classify,
     classify_patch as classify_patch,
     ColourMatch as ColourMatch,
     ColourProbe as ColourProbe,
@@ -74,4 +76,5 @@ from ._vision import (
     SeeThrough as SeeThrough,
     Sighting as Sighting,
     suppress_moire as suppress_moire,
+    VisionClassifier as VisionClassifier,
 )

@@ -28,6 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..data import IMAGE_SUFFIXES
 from ._types import Real
 
 
@@ -42,7 +43,6 @@ OPEN_FAILED = "open_failed"
 SOURCE_ERROR = "source_error"
 CLOSED = "closed"
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm")
 
 # Events pile up only if the consumer stalls while a live source keeps failing; past this
 # many pending events the oldest are discarded (and counted) so memory stays bounded.

@@ -15,12 +15,13 @@ reference's transmission, so a local least-squares ratio of the two recovers the
 wherever light passes, and multiplying by the reference's smooth envelope gives the
 image through gratings of uniform mean transmission. [`locate`][] segments what differs
 from the empty view and fits each object's centre, axis and size, in mm in the wrench
-frame.
+frame. [`classify`][] hands the restored image to any classifier the user brings.
 """
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -566,3 +567,188 @@ def locate(
         )
     objects.sort(key=lambda o: -o.confidence)
     return Sighting(objects, "ok" if objects else "empty")
+
+
+# ---------------------------------------------------------------------------------------
+# A classifier of the user's own.
+
+
+@dataclasses.dataclass(frozen=True)
+class Classification:
+    """What [`classify`][] made of one frame.
+
+    **Fields:**
+
+    - `label`: the model's answer. When the model returns a label (a string, an integer,
+        any scalar), that label; when it returns scores, the name in `labels` of the highest
+        score, or its index without `labels`. `None` when the model was not called.
+    - `scores`: the scores as the model returned them, as a 1-D float64 array (a batch of
+        one, `(1, n)`, is flattened), not normalised: logits stay logits, probabilities
+        stay probabilities. `None` when the model returned a label or was not called.
+    - `status`: `"ok"` (the model was called), or why it was not: `"dark"` (no light above
+        the black level), `"saturated"` (most pixels clipped) or `"empty"` (nothing differs
+        from the empty view, only checked with a [`SeeThrough`][]).
+    """
+
+    label: Any
+    scores: np.ndarray | None
+    status: str
+
+
+def _exposure_status(frame: np.ndarray, black_level: float) -> str | None:
+    """`"saturated"` or `"dark"` for a float frame that is one of them (the thresholds of [`locate`][]), else `None`."""
+    sample = frame[::4, ::4]
+    brightest = np.maximum(np.maximum(sample[..., 0], sample[..., 1]), sample[..., 2])
+    if np.mean(brightest >= 254 / 255) > 0.5:
+        return "saturated"
+    if float(np.percentile(brightest, 99)) <= black_level + 2 / 255:
+        return "dark"
+    return None
+
+
+def _shows_nothing(restored: np.ndarray, see_through: SeeThrough, min_contrast: float) -> bool:
+    """Whether a restored float image nowhere differs from the empty view by `min_contrast`.
+
+    The scene relative to the empty view, `(restored - o) / E`, is 1 on the backdrop; its
+    colour difference from 1 is smoothed over a few pixels (on every second pixel) so that
+    the camera noise of single pixels does not count as an object.
+    """
+    relative = (_every_second(restored) - np.float32(see_through.black_level)) / _every_second(see_through.envelope)
+    contrast = cv2.GaussianBlur(_contrast(relative - np.float32(1)), (0, 0), 2.0)
+    return float(contrast.max()) <= min_contrast
+
+
+def classify(
+    image: np.ndarray,
+    model: Callable[[np.ndarray], Any],
+    *,
+    see_through: SeeThrough | None = None,
+    labels: Sequence[Any] | None = None,
+    black_level: Real | None = None,
+    min_contrast: Real | None = 0.25,
+) -> Classification:
+    """Hands a see-through frame to any image classifier: restored first, and only if it shows something.
+
+    The frame is checked for exposure; a dark or saturated frame is not passed to the model.
+    With a [`SeeThrough`][] the frame is restored (the gratings' and the moiré's modulation
+    removed, see [`restore`][]), and a frame that shows only the empty view is not passed
+    either. Otherwise `model(image)` gets the image as a numpy array. moirejax depends on no
+    machine-learning runtime: the model is any callable, and wrapping one is its caller's
+    business. An ONNX Runtime session whose input is named `"image"` and takes one RGB
+    float image in channels-first order:
+
+    ```python
+    session = onnxruntime.InferenceSession("model.onnx")
+    model = lambda im: session.run(None, {"image": im[None, ..., ::-1].transpose(0, 3, 1, 2).astype("float32")})[0]
+    ```
+
+    A PyTorch module (in `eval()` mode) on the same input:
+
+    ```python
+    to_tensor = lambda im: torch.from_numpy(im[..., ::-1].transpose(2, 0, 1).copy()).float()[None]
+    model = lambda im: net(to_tensor(im)).detach().numpy()
+    ```
+
+    Convert uint8 frames to the model's scale in the same lambda (`im / 255`), and resize
+    them if it was trained on another size (`cv2.resize`).
+
+    **Arguments:**
+
+    - `image`: a BGR frame `(h, w, 3)`, uint8 or float in [0, 1]: with `see_through`, the
+        raw frame; without, the image the model gets as it is.
+    - `model`: `model(image) -> label | scores`, called with a BGR `(h, w, 3)` array in
+        the frame's dtype (the restored image with `see_through`). It returns a label (a
+        scalar: a string, an integer) or an array of scores, one per class, `(n,)` or
+        `(1, n)`.
+    - `see_through`: the unit's [`SeeThrough`][]: it restores the frame, and its
+        `black_level` is the default for `black_level`.
+    - `labels`: the class names, in the order of the scores: the label of scores is then
+        the name of the highest one.
+    - `black_level`: the camera's value for no light, in [0, 1], for the dark-frame check;
+        `see_through.black_level` by default, else 0.
+    - `min_contrast`: with `see_through`, the relative colour difference from the empty
+        view that a region must reach for the frame not to be `"empty"` (as for
+        [`locate`][]); `None` passes empty views to the model too.
+
+    **Returns:** a [`Classification`][]: the label, the scores and the status.
+
+    **Raises:** `RuntimeError` when the model raises, naming its exception (which is
+    chained as the cause): a model that fails is a bug to see, not a status. In
+    [`run_pipeline`][] a [`VisionClassifier`][] that raises becomes a `vision_error`
+    record and the loop goes on. `ValueError` for an answer that is neither a scalar nor
+    numbers, for scores that are not one row, and for scores whose length differs from that
+    of `labels`.
+    """
+    arr = _checked_frame(image)
+    if black_level is None:
+        black_level = 0.0 if see_through is None else see_through.black_level
+    if not 0 <= black_level < 1:
+        raise ValueError(f"black_level must be in [0, 1), got {black_level}")
+    if min_contrast is not None and not min_contrast > 0:
+        raise ValueError(f"min_contrast must be positive or None, got {min_contrast}")
+    frame = _as_float_frames(arr, "image")
+    status = _exposure_status(frame, float(black_level))
+    if status is not None:
+        return Classification(None, None, status)
+    if see_through is not None:
+        arr = see_through(arr)
+        if min_contrast is not None and _shows_nothing(
+            _as_float_frames(arr, "image"), see_through, float(min_contrast)
+        ):
+            return Classification(None, None, "empty")
+    try:
+        answer = model(arr)
+    except Exception as e:
+        raise RuntimeError(f"the classifier raised {type(e).__name__}: {e}") from e
+    if np.ndim(answer) == 0:
+        # NumPy, JAX and PyTorch scalars become Python ones.
+        return Classification(answer.item() if hasattr(answer, "item") else answer, None, "ok")
+    try:
+        scores = np.asarray(answer, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"the classifier returned neither a label nor scores: {e}") from e
+    if scores.size == 0 or sum(n > 1 for n in scores.shape) > 1:
+        raise ValueError(f"the classifier returned scores of shape {scores.shape}: expected (n,) or (1, n)")
+    scores = scores.reshape(-1)
+    if labels is None:
+        return Classification(int(np.argmax(scores)), scores, "ok")
+    if len(labels) != scores.size:
+        raise ValueError(f"the classifier returned {scores.size} scores for {len(labels)} labels")
+    return Classification(labels[int(np.argmax(scores))], scores, "ok")
+
+
+class VisionClassifier:
+    """A vision hook for [`run_pipeline`][]: [`classify`][] every colour frame in vision mode.
+
+    **Arguments:**
+
+    - `model`, `see_through`, `labels`, and any keyword argument of [`classify`][].
+
+    Calling it with a [`Frame`][] returns the record's message, such as
+    `"label=chelsea status=ok"` (or `"label=none status=empty"` when the model was not
+    called), or `None` for frames without colour; the whole [`Classification`][] is kept
+    in `last`.
+    """
+
+    def __init__(
+        self,
+        model: Callable[[np.ndarray], Any],
+        *,
+        see_through: SeeThrough | None = None,
+        labels: Sequence[Any] | None = None,
+        **classify_kwargs: Any,
+    ):
+        self.model = model
+        self.see_through = see_through
+        self.labels = labels
+        self.classify_kwargs = classify_kwargs
+        self.last: Classification | None = None
+
+    def __call__(self, frame: Frame) -> str | None:
+        if frame.color is None:
+            return None
+        self.last = classify(
+            frame.color, self.model, see_through=self.see_through, labels=self.labels, **self.classify_kwargs
+        )
+        label = "none" if self.last.label is None else self.last.label
+        return f"label={label} status={self.last.status}"
