@@ -4,6 +4,7 @@ import tempfile
 
 import jax
 import jax.random as jr
+import numpy as np
 import pytest
 
 
@@ -63,3 +64,21 @@ def moire_bands_only(monkeypatch):
     on frames of another renderer: each model evaluation costs about two thirds. The carriers'
     own tests, the peer frames and the inversion tests keep the default."""
     monkeypatch.setenv("MOIREJAX_CARRIERS", "0")
+
+
+@pytest.fixture(scope="module")
+def vision_device():
+    """A Mid unit with a small camera (256², a 16 mm field) for vision-mode tests."""
+    import moirejax as mj
+
+    return mj.preset("mid", height=256, width=256)
+
+
+@pytest.fixture(scope="module")
+def see_through(vision_device):
+    """Restoration of the vision unit's frames from four frames of its empty view."""
+    import moirejax as mj
+    from moirejax.live import SeeThrough
+
+    reference = np.asarray(mj.empty_scene_reference(jr.PRNGKey(1), vision_device, frames=4))
+    return SeeThrough(reference, black_level=float(vision_device.optics.offset))

@@ -145,3 +145,16 @@ def test_colour_probe_as_vision_hook():
     message = ColourProbe(notch, PATCH)(frame)
     assert message.startswith("colour=orange ")
     assert ColourProbe()(Frame(0, 0.0, frame.gray, None)) is None
+
+
+def test_colour_probe_keeps_the_brightness_of_a_small_field():
+    """On a 16 mm field the moiré lies four frequency bins from zero; the notch must not
+    reach the zero frequency there, or every restored frame comes out dimmer."""
+    import moirejax as mj
+    from moirejax.live import make_colour_probe
+
+    device = mj.preset("mid", height=256, width=256)
+    notch = make_colour_probe(device).notch
+    assert notch.gain[0, 0] > 0.98
+    flat = np.full((256, 256, 3), 0.4)
+    np.testing.assert_allclose(notch(flat).mean(), 0.4, rtol=0.02)

@@ -6,27 +6,18 @@ import numpy as np
 import pytest
 
 import moirejax as mj
-from moirejax.live import Classification, classify, Frame, SeeThrough, VisionClassifier
+from moirejax.live import Classification, classify, Frame, VisionClassifier
 
 
 LABELS = ("astronaut", "chelsea", "coffee")
 
 
 @pytest.fixture(scope="module")
-def device():
-    return mj.preset("mid", height=256, width=256)
-
-
-@pytest.fixture(scope="module")
-def see_through(device):
-    reference = np.asarray(mj.empty_scene_reference(jr.PRNGKey(1), device, frames=4))
-    return SeeThrough(reference, black_level=float(device.optics.offset))
-
-
-@pytest.fixture(scope="module")
-def cat(device):
+def cat(vision_device):
     """A see-through frame of scikit-image's cat 8 mm above the pad, and its grating-free view."""
-    rendered = mj.render_scene(jr.PRNGKey(2), device, mj.scene_texture("chelsea", 40.0, yaw_deg=20.0, height=8.0))
+    rendered = mj.render_scene(
+        jr.PRNGKey(2), vision_device, mj.scene_texture("chelsea", 40.0, yaw_deg=20.0, height=8.0)
+    )
     return np.asarray(rendered.frame, np.float32), np.asarray(rendered.grating_free, np.float32)
 
 
@@ -78,9 +69,9 @@ def test_the_model_gets_the_restored_image_which_matches_the_grating_free_view(c
     assert classify(as_uint8, lambda image: str(image.dtype), see_through=see_through).label == "uint8"
 
 
-def test_dark_saturated_and_empty_frames_never_reach_the_model(device, see_through):
-    shape = (device.height, device.width, 3)
-    black = float(device.optics.offset)
+def test_dark_saturated_and_empty_frames_never_reach_the_model(vision_device, see_through):
+    shape = (vision_device.height, vision_device.width, 3)
+    black = float(vision_device.optics.offset)
     assert classify(np.zeros(shape, np.uint8), never_called) == Classification(None, None, "dark")
     assert classify(np.full(shape, 255, np.uint8), never_called).status == "saturated"
     # A frame at the camera's black level is dark only when the black level is known.
@@ -89,7 +80,7 @@ def test_dark_saturated_and_empty_frames_never_reach_the_model(device, see_throu
     assert classify(at_black, never_called, black_level=black).status == "dark"
     assert classify(at_black, lambda image: "lit").status == "ok"
     # The empty view, with nothing above the pad: empty with a SeeThrough, unless asked otherwise.
-    empty = np.asarray(mj.render_scene(jr.PRNGKey(3), device, None).frame, np.float32)
+    empty = np.asarray(mj.render_scene(jr.PRNGKey(3), vision_device, None).frame, np.float32)
     assert classify(empty, never_called, see_through=see_through).status == "empty"
     assert classify(empty, lambda image: "backdrop", see_through=see_through, min_contrast=None).label == "backdrop"
 

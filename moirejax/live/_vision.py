@@ -70,7 +70,9 @@ class MoireNotch:
     - `shape`: `(h, w)` of the frames.
     - `wavevectors`: `(n, 2)` `(kx, ky)` in rad/mm (y up): moiré and carrier wavevectors.
     - `px_per_mm`: frame resolution.
-    - `width`: notch radius (Gaussian sigma) in frequency bins of the larger side.
+    - `width`: notch radius (Gaussian sigma) in frequency bins of the larger side, narrowed
+        to a quarter of a notch's distance from the zero frequency, which keeps the image's
+        mean and its coarsest structure.
     - `harmonics`: how many multiples of each wavevector to notch (binary gratings have
         strong odd harmonics).
     """
@@ -93,11 +95,15 @@ class MoireNotch:
         gain = np.ones((h, w // 2 + 1))
         for k_x, k_y in np.asarray(wavevectors, dtype=np.float64).reshape(-1, 2):
             for m in range(1, harmonics + 1):
+                # No notch reaches the zero frequency: on a small field the moiré lies a few
+                # bins from it, and a notch as wide as on a large field would dim the image.
+                alias = (np.array([m * k_x, m * k_y]) + period / 2) % period - period / 2
+                s = min(sigma, float(np.hypot(*alias)) / 4)
                 for sign in (1, -1):
                     # Distance on the periodic frequency torus, so aliased notches land right.
                     dx = (kx[None, :] - sign * m * k_x + period / 2) % period - period / 2
                     dy = (ky[:, None] - sign * m * k_y + period / 2) % period - period / 2
-                    gain *= 1 - np.exp(-(dx**2 + dy**2) / (2 * sigma**2))
+                    gain *= 1 - np.exp(-(dx**2 + dy**2) / (2 * s**2))
         self.shape = (h, w)
         self.gain = gain
 
