@@ -176,3 +176,30 @@ def test_inverter_uses_carriers_on_crossed_grids():
     for family in range(4):
         inner = _inner(inverter.demodulator, family)
         assert np.max(np.abs(np.angle(ratio[family][inner]))) < 0.02
+
+
+def test_bands_of_a_sampled_traction_field_match_the_analytic_contact():
+    # `BandModel.of_deformation` takes any displacement: the layer's response to a Hertz
+    # press sampled on the model grid must give the bands of the analytic transform that
+    # the inversion uses, to the sampling error of the field (about 1% of the phase change),
+    # and leaving out the contact's glow must leave a misfit of the size of that glow.
+    device = _lines(duty=0.5, glow_gain=4.0)
+    inverter = mj.Inverter(device, None)
+    model = inverter.model
+    grid, response = model.mechanics.grid, model.mechanics.response
+    wrench = jnp.asarray([0.0, 0.0, 0.8, 0.0, 0.0, 0.0])
+    contact = mj.Contact(x0=jnp.asarray(1.0), y0=jnp.asarray(-2.0), radius=jnp.asarray(2.5))
+    analytic = model(wrench, contact)
+    state = model.mechanics(wrench, contact)
+    sampled = model.of_deformation(response(mj.surface_tractions(wrench, contact, grid)), state.light)
+    unlit = model.of_deformation(state.displacement)
+    families, m, n = inverter.fringe_weight.shape
+    phase = slice(families * m * n, 2 * families * m * n)
+
+    def misfit(predicted):
+        return float(np.linalg.norm(inverter.band_residual(analytic, predicted)[phase]))
+
+    change = misfit(inverter.model_reference)
+    assert misfit(model.of_deformation(state.displacement, state.light)) < 1e-4 * change
+    assert misfit(sampled) < 0.03 * change
+    assert misfit(unlit) > 0.1 * change

@@ -31,6 +31,26 @@ def test_design_flags_write_and_plot(tmp_path, capsys):
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_design_sets_every_value_a_unit_has(tmp_path, capsys):
+    # Duty of each grating, the cross angle and every optical value, as a unit measured
+    # elsewhere would need them; the rest stays the preset's.
+    device_file = tmp_path / "unit.json"
+    argv = ["design", "--preset", "mid", "--duty1", "0.5", "--duty2", "0.7", "--cross-angle-deg", "88"]
+    optics = {"defocus": 0.03, "psf_sigma": 1.1, "background": 0.8, "vignetting": 0.3, "glow_gain": 0.0}
+    optics |= {"glow_width": 1.5, "rim_gain": 0.0, "rim_width": 0.4, "gain": 0.7, "offset": 0.02, "gamma": 1.2}
+    for name, value in optics.items():
+        argv += [f"--{name.replace('_', '-')}", str(value)]
+    assert main([*argv, "--write", str(device_file)]) == 0
+    device, nominal = mj.load_device(device_file), mj.preset("mid")
+    assert float(device.duty1) == pytest.approx(0.5) and float(device.duty2) == pytest.approx(0.7)
+    assert float(device.cross_angle) == pytest.approx(88 * 3.141592653589793 / 180)
+    for name, value in optics.items():
+        assert float(getattr(device.optics, name)) == pytest.approx(value), name
+    assert float(device.p1) == float(nominal.p1) and float(device.elastomer.E) == float(nominal.elastomer.E)
+    assert main(["design", "--preset", "mid", "--duty1", "1.5"]) == 2
+    assert "duty1" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "argv, fragment, code",
     [

@@ -82,7 +82,9 @@ class Rig:
         return np.mean([self.render(-1 - i, np.zeros(6), Contact()) for i in range(8)], axis=0)
 
 
-def wait_until(predicate, timeout=120.0):
+def wait_until(predicate, timeout=900.0):
+    # Generous: the handle compiles its inversion before the first record, and a loaded
+    # machine may take minutes; a passing run waits only as long as the handle needs.
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if predicate():

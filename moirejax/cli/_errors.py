@@ -53,6 +53,7 @@ FLAGS = {
     "record": "--record",
     "sink": "--sink",
     "restore": "--restore",
+    "mcap": "--mcap",
 }
 
 # The flags of each command that name outputs; the others that name paths are inputs.
@@ -60,11 +61,11 @@ OUTPUT_FLAGS = {
     "design": ("write", "plot", "observability_plot"),
     "simulate": ("out",),
     "import": ("out",),
-    "invert": ("out",),
+    "invert": ("out", "mcap"),
     "calibrate": ("out",),
     "evaluate": ("out",),
     "transfer": ("out",),
-    "live": ("record", "sink"),
+    "live": ("record", "sink", "mcap"),
     "vision": ("restore",),
     "cap-removal": ("out",),
     "demo": ("out",),

@@ -5,6 +5,7 @@ whose flags and help a user reads together; each command's body is a few lines c
 public API."""
 
 import argparse
+import dataclasses
 import importlib.metadata
 import json
 import math
@@ -72,6 +73,28 @@ def _add_device_arguments(parser: argparse.ArgumentParser, *, design_flags: bool
         g.add_argument("--nu", type=float, help="elastomer Poisson ratio")
         g.add_argument("--thickness", type=float, help="elastomer thickness, mm")
         g.add_argument("--layout", choices=["lines", "crossed"], help="line gratings or crossed grids")
+        g.add_argument("--duty1", type=float, help="open fraction of the upper grating's lines, 0 to 1")
+        g.add_argument("--duty2", type=float, help="open fraction of the reference grating's lines, 0 to 1")
+        g.add_argument("--cross-angle-deg", type=float, help="angle between a crossed grid's two line sets, degrees")
+        o = parser.add_argument_group("optics and photometry (override the preset)")
+        for name, text in _OPTICS_FLAGS.items():
+            o.add_argument(f"--{name.replace('_', '-')}", type=float, help=text)
+
+
+# The optical values of a unit that a command may set, with what each is (docs/physics.md).
+_OPTICS_FLAGS = {
+    "defocus": "blur of the far grating's image, mm (Gaussian sd)",
+    "psf_sigma": "lens point spread, pixels (Gaussian sd)",
+    "background": "scene radiance behind the sensor, 0 to 1",
+    "vignetting": "fall-off of the illumination towards the corners, 0 to 1",
+    "glow_gain": "light the elastomer scatters under a contact, per unit of pressure (0: none)",
+    "glow_width": "width of that glow, mm",
+    "rim_gain": "brightness of the rim around a contact (0: none)",
+    "rim_width": "width of the rim, mm",
+    "gain": "camera gain",
+    "offset": "camera black level",
+    "gamma": "camera response exponent",
+}
 
 
 def _device_from_args(args: argparse.Namespace):
@@ -82,22 +105,32 @@ def _device_from_args(args: argparse.Namespace):
     else:
         device = preset(args.preset or "mid", **({"layout": args.layout} if getattr(args, "layout", None) else {}))
     changes: dict = {}
-    for flag, field in (("p1", "p1"), ("p2", "p2"), ("a", "a"), ("Z", "Z"), ("px_per_mm", "px_per_mm")):
+    for flag, field in (
+        ("p1", "p1"),
+        ("p2", "p2"),
+        ("a", "a"),
+        ("Z", "Z"),
+        ("px_per_mm", "px_per_mm"),
+        ("duty1", "duty1"),
+        ("duty2", "duty2"),
+    ):
         value = getattr(args, flag, None)
         if value is not None:
             changes[field] = value
-    for flag, field in (("alpha1_deg", "alpha1"), ("alpha2_deg", "alpha2")):
+    for flag, field in (("alpha1_deg", "alpha1"), ("alpha2_deg", "alpha2"), ("cross_angle_deg", "cross_angle")):
         value = getattr(args, flag, None)
         if value is not None:
             changes[field] = math.radians(value)
     if getattr(args, "size", None) is not None:
         changes["height"] = changes["width"] = args.size
     elastomer = {k: getattr(args, k) for k in ("E", "nu", "thickness") if getattr(args, k, None) is not None}
-    if not changes and not elastomer and not getattr(args, "layout", None):
+    optics = {k: getattr(args, k) for k in _OPTICS_FLAGS if getattr(args, k, None) is not None}
+    if not changes and not elastomer and not optics and not getattr(args, "layout", None):
         return device
     obj = device_to_json(device)
     obj.update(changes)
     obj["elastomer"].update(elastomer)
+    obj["optics"].update(optics)
     if getattr(args, "layout", None) and args.layout != obj["layout"]:
         obj["layout"] = args.layout
         n = 1 if args.layout == "lines" else 2
@@ -239,22 +272,63 @@ def _reference_for(device, source, reference_path):
     return reference, note
 
 
+def _open_mcap(path: str, **options):
+    """The `McapSink` of `--mcap PATH` (its folder made), checked before any long work."""
+    from ..live import McapSink
+
+    check_output_file(path, argument="mcap")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    try:
+        return McapSink(path, **options)
+    except ImportError as e:  # without the `ros` extra: a usage error, not a crash
+        raise ValueError(f"--mcap: {e}") from e
+    except FileExistsError:
+        raise OutputError(
+            f"{path}.part: the unfinished file of an interrupted run; salvage it with `mcap recover` or delete it, "
+            "or change {argument}",
+            argument="mcap",
+        ) from None
+
+
 def _cmd_invert(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..calibration import load_calibrated
     from ..inverse import check_source, invert_recording, Inverter
+    from ..live import record_inversion, RecordStream, WRENCH_STATUSES
 
     # Everything that can be checked is checked before the inversion is compiled.
+    if args.fps is not None and not args.mcap:
+        raise ValueError("--fps sets the stamps of --mcap: give the MCAP file with --mcap")
     device, head = load_calibrated(args.device)
     check_source(args.data)
     check_output_file(args.out, argument="out")
-    reference, note = _reference_for(device, args.data, args.reference)
-    if reference is not None:
-        print(note, file=sys.stderr)
-    inverter = Inverter(device, reference=None if reference is None else np.asarray(reference))
-    counts = invert_recording(inverter, args.data, args.out, batch=args.batch, progress=not args.quiet, head=head)
+    if args.mcap and os.path.abspath(args.mcap) == os.path.abspath(args.out):
+        raise ValueError("--mcap and --out name the same file")
+    mcap = _open_mcap(args.mcap, wrench_statuses=WRENCH_STATUSES) if args.mcap else None
+    try:
+        reference, note = _reference_for(device, args.data, args.reference)
+        if reference is not None:
+            print(note, file=sys.stderr)
+        inverter = Inverter(device, reference=None if reference is None else np.asarray(reference))
+        counts = invert_recording(inverter, args.data, args.out, batch=args.batch, progress=not args.quiet, head=head)
+        stamps = None
+        if mcap is not None:
+            records = RecordStream(sensor_id=args.sensor_id, frame_id=args.frame_id)
+            stamps = record_inversion(mcap, args.data, args.out, device, records=records, fps=args.fps)
+            if mcap.stats["errors"]:
+                raise OutputError(f"{args.mcap}: {mcap.stats['errors']} messages could not be written (see the log)")
+            mcap.close()
+    except BaseException:
+        if mcap is not None:
+            mcap.abort()  # no half MCAP file, at its name or beside it
+        raise
     print(f"wrote {args.out}: " + ", ".join(f"{n} {status}" for status, n in sorted(counts.items())))
+    if mcap is not None:
+        print(
+            f"wrote {args.mcap}: {mcap.stats['sent']} records, {mcap.stats['images']} frames, "
+            f"{mcap.stats['pressure_maps']} pressure maps; stamps: {stamps}"
+        )
     return 0
 
 
@@ -325,32 +399,77 @@ def _cmd_transfer(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_live(args: argparse.Namespace) -> int:
-    from ..calibration import load_calibrated
-    from ..live import format_summary, McapSink, parse_sink, RecordStream, run_live, WrenchFilter
+# Suffixes that make a `--source` that does not exist a missing file rather than a camera name.
+_FILE_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".json", ".csv")
 
-    device, _ = load_calibrated(args.device)
-    source = args.source
-    if source != "sim" and not source.isdigit() and "://" not in source and "!" not in source:
-        if not Path(source).exists():
-            raise DataError(f"{source}: not 'sim', a camera index, a URL, a folder or a video file")
-        if Path(source).is_file():
+
+def _live_source(spec: str) -> str:
+    """The `--source` of `live` as `run_live` takes it: a camera named by its name, serial
+    number or path becomes its index; the rest is checked and passed on."""
+    from ..data import IMAGE_SUFFIXES
+    from ..live import find_camera
+
+    if spec == "sim" or spec.isdigit() or "://" in spec or "!" in spec:
+        return spec
+    if Path(spec).exists():
+        if Path(spec).is_file():
             from ..inverse import check_source
 
-            check_source(source)
+            check_source(spec)
+        return spec
+    not_a_source = f"{spec}: not 'sim', a camera index, a URL, a folder or a video file"
+    if "/" in spec or os.sep in spec or Path(spec).suffix.lower() in _FILE_SUFFIXES + tuple(IMAGE_SUFFIXES):
+        raise DataError(not_a_source)
+    try:
+        index = find_camera(spec)
+    except ImportError as e:
+        raise DataError(f"{not_a_source}; to open a camera by its name, {e}") from None
+    print(f"camera {spec!r}: index {index}", file=sys.stderr)
+    return str(index)
+
+
+def _cmd_cameras(args: argparse.Namespace) -> int:
+    from ..live import list_cameras
+
+    try:
+        cameras = list_cameras()
+    except ImportError as e:  # without the `cameras` extra: a usage error, not a crash
+        raise ValueError(str(e)) from e
+    if args.json:
+        print(json.dumps([dataclasses.asdict(c) for c in cameras], indent=2))
+        return 0
+    if not cameras:
+        print("no cameras found", file=sys.stderr)
+        return 0
+    header = ("index", "name", "backend", "usb id", "path")
+    rows = [(str(c.index), c.name, c.backend, c.usb_id or "-", c.path or "-") for c in cameras]
+    widths = [max(len(r[k]) for r in (header, *rows)) for k in range(len(header) - 1)]
+    for row in (header, *rows):
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)) + "  " + row[-1])
+    for camera in cameras:
+        for alias in camera.aliases:
+            print(f"{camera.index}: also {alias}")
+    print(
+        "index is what `live --source` takes (a backend's camera number plus OpenCV's id of the backend: 200 is "
+        "V4L2's camera 0); --source also takes a camera's name or part of its name, serial number or path. "
+        "Resolutions and frame rates: cv2-enumerate-cameras does not report them; `live` uses the camera's default.",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def _cmd_live(args: argparse.Namespace) -> int:
+    from ..calibration import load_calibrated
+    from ..live import format_summary, parse_sink, RecordStream, run_live, WrenchFilter
+
+    device, _ = load_calibrated(args.device)
+    source = _live_source(args.source)
     if args.record:
         check_output_file(args.record, argument="record")
     for spec in args.sink or []:
         if spec not in ("-", "stdout") and not spec.lower().startswith("udp://"):
             check_output_file(spec, argument="sink")
-    if args.mcap:
-        check_output_file(args.mcap, argument="mcap")
-    mcap = []
-    if args.mcap:
-        try:
-            mcap = [McapSink(args.mcap)]
-        except ImportError as e:  # without the `ros` extra: a usage error, not a crash
-            raise ValueError(f"--mcap: {e}") from e
+    mcap = [_open_mcap(args.mcap)] if args.mcap else []
     sinks = [parse_sink(spec) for spec in (args.sink or ["-"])] + mcap
     records = RecordStream(
         sensor_id=args.sensor_id,
@@ -360,7 +479,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     try:
         summary = run_live(
             device,
-            args.source,
+            source,
             sinks=sinks,
             max_frames=args.max_frames,
             record=args.record,
@@ -583,6 +702,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the `moirejax` command (also used to document the CLI)."""
+    from ..live import WRENCH_STATUSES
+
     parser = argparse.ArgumentParser(
         prog="moirejax",
         description="Design, simulate, calibrate and invert moire visuotactile sensors.",
@@ -689,6 +810,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--batch", type=_positive_int, default=1, help="invert N frames at once, N >= 1 (throughput; no warm start)"
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--mcap",
+        metavar="OUT.mcap",
+        help="also write ROS 2 messages of every frame to MCAP: its record with its status, its wrench "
+        f"(statuses {', '.join(WRENCH_STATUSES)}), the frame and the pressure map",
+    )
+    p.add_argument(
+        "--fps",
+        type=_positive_float,
+        help="frame rate of the --mcap stamps (default: the dataset's t column, else the recording's frame rate, "
+        "else one frame a second)",
+    )
+    p.add_argument("--sensor-id", default="moirejax", help="the --mcap records' sensor name")
+    p.add_argument("--frame-id", default="moirejax_sensor", help="ROS frame name of the --mcap wrenches")
     p.set_defaults(run=_cmd_invert)
 
     p = sub.add_parser("calibrate", help="fit a unit's physical parameters and residual head to a dataset")
@@ -731,7 +866,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("live", help="stream wrenches from a camera, video or the simulated sensor")
     p.add_argument("--device", required=True, metavar="FIT.json")
-    p.add_argument("--source", default="sim", help="sim, a camera index, a video file or URL, or a folder of frames")
+    p.add_argument(
+        "--source",
+        default="sim",
+        help="sim, a camera index, a camera's name or part of its name, serial number or path (see `moirejax "
+        "cameras`), a video file or URL, or a folder of frames",
+    )
     p.add_argument(
         "--sink",
         action="append",
@@ -765,6 +905,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="the Kalman filter's load change per frame, as a fraction of each axis's range",
     )
     p.set_defaults(run=_cmd_live)
+
+    p = sub.add_parser("cameras", help="list the cameras attached, with the index and name `live --source` takes")
+    p.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
+    p.set_defaults(run=_cmd_cameras)
 
     p = sub.add_parser("vision", help="see through the sensor: restored images and objects located before contact")
     p.add_argument("--device", required=True, metavar="FILE", help="device JSON of the unit (nominal or calibrated)")

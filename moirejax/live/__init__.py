@@ -1,4 +1,4 @@
-"""Live sensing: frame sources, rectification, the GateER contact gate, vision mode, output
+"""Live sensing: cameras by name, frame sources, rectification, the GateER contact gate, vision mode, output
 sinks (JSON lines, UDP, MCAP for ROS 2), the live loop, and the in-process sensor handle.
 
 This is I/O and control code in numpy/OpenCV around the differentiable core: the wrench
@@ -8,8 +8,11 @@ inversion plugs in as `process_tactile` of [`run_pipeline`][].
 from ._camera import (
     AbstractFrameSource as AbstractFrameSource,
     CallableSource as CallableSource,
+    CameraDevice as CameraDevice,
+    find_camera as find_camera,
     FolderSource as FolderSource,
     Frame as Frame,
+    list_cameras as list_cameras,
     Reconnect as Reconnect,
     SourceEvent as SourceEvent,
     VideoSource as VideoSource,
@@ -23,7 +26,7 @@ from ._controller import (
 )
 from ._gate import GateDecision as GateDecision, GateER as GateER
 from ._handle import open_sensor as open_sensor, SensorHandle as SensorHandle
-from ._mcap import McapSink as McapSink
+from ._mcap import McapSink as McapSink, record_inversion as record_inversion, WRENCH_STATUSES as WRENCH_STATUSES
 from ._pipeline import LiveSummary as LiveSummary, run_pipeline as run_pipeline
 from ._records import RecordStream as RecordStream, WrenchFilter as WrenchFilter
 from ._rectify import (

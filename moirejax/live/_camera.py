@@ -579,3 +579,155 @@ class CallableSource(AbstractFrameSource):
 
     def _release(self) -> None:
         pass
+
+
+# --------------------------------------------------------------------------- cameras by name
+
+CAMERAS_EXTRA = "pip install 'moirejax[cameras]'"
+
+# OpenCV's camera backends by their `cv2.CAP_*` id. One device reached through several
+# backends (GStreamer and V4L2 on Linux, MSMF and DirectShow on Windows) is listed once,
+# under the first of these that reports it: the backend OpenCV itself tries first for a
+# camera index on that system.
+_BACKEND_NAMES = {
+    cv2.CAP_V4L2: "V4L2",
+    cv2.CAP_MSMF: "MSMF",
+    cv2.CAP_DSHOW: "DSHOW",
+    cv2.CAP_AVFOUNDATION: "AVFOUNDATION",
+    cv2.CAP_GSTREAMER: "GSTREAMER",
+}
+_PREFERRED_BACKENDS = tuple(_BACKEND_NAMES)
+
+# Linux names each video device by links that survive a reboot and a change of USB port
+# (`by-id`, which holds the serial number) or that name the port (`by-path`).
+_PERSISTENT_LINK_FOLDERS = ("/dev/v4l/by-id", "/dev/v4l/by-path")
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraDevice:
+    """A camera as the system reports it, from [`list_cameras`][].
+
+    **Fields:**
+
+    - `index`: what `VideoSource`, `cv2.VideoCapture` and `moirejax live --source` take to
+        open it: the backend's camera number plus OpenCV's id of the backend (`200` is
+        V4L2's camera 0, `1400` Media Foundation's), so that the number names one
+        device through one backend.
+    - `name`: the device's name (`"HD Pro Webcam C920"`).
+    - `backend`: the OpenCV backend it is opened through (`"V4L2"`, `"MSMF"`, ...).
+    - `path`: the backend's device path: `/dev/videoN` on Linux, the device instance
+        path (with the USB serial number) on Windows, the unique id on macOS; or `None`.
+    - `usb_id`: `"VID:PID"` in hexadecimal when the device is on USB, else `None`.
+    - `aliases`: other names of the device that survive a reboot, on Linux its
+        `/dev/v4l/by-id` link (with the serial number) and `/dev/v4l/by-path` link.
+    """
+
+    index: int
+    name: str
+    backend: str
+    path: str | None = None
+    usb_id: str | None = None
+    aliases: tuple[str, ...] = ()
+
+    def describe(self) -> str:
+        """One line naming the camera: `200 'HD Pro Webcam C920' (V4L2, /dev/video0)`."""
+        where = ", ".join(x for x in (self.backend, self.path, self.usb_id) if x)
+        return f"{self.index} {self.name!r} ({where})"
+
+
+def _enumerate_cameras() -> list[Any]:
+    """The cameras `cv2-enumerate-cameras` reports, through each backend it supports.
+
+    Each item has `index` (the backend's camera number), `name`, `path`, `vid`, `pid`
+    and `backend` (the `cv2.CAP_*` id).
+    """
+    try:
+        import cv2_enumerate_cameras as enumeration
+    except ImportError as e:
+        raise ImportError(f"finding cameras by name needs the `cameras` extra: {CAMERAS_EXTRA}") from e
+    found: list[Any] = []
+    for backend in enumeration.supported_backends:
+        try:
+            found.extend(enumeration.enumerate_cameras(backend))
+        except Exception:  # a backend without its driver or service lists no cameras
+            continue
+    return found
+
+
+def _persistent_links(path: str | None) -> tuple[str, ...]:
+    if not path or not path.startswith("/dev/"):
+        return ()
+    target = os.path.realpath(path)
+    links = []
+    for folder in _PERSISTENT_LINK_FOLDERS:
+        try:
+            names = sorted(os.listdir(folder))
+        except OSError:
+            continue
+        links += [os.path.join(folder, n) for n in names if os.path.realpath(os.path.join(folder, n)) == target]
+    return tuple(links)
+
+
+def list_cameras() -> list[CameraDevice]:
+    """The cameras attached to this computer, each once, in the order the system lists them.
+
+    Found with the `cv2-enumerate-cameras` package (the `cameras` extra), which reports
+    names, device paths and USB ids but not the resolutions and frame rates a camera
+    offers: open it (`cv2.VideoCapture(camera.index)`) to ask for those.
+
+    **Returns:** a list of [`CameraDevice`][].
+
+    **Raises:** `ImportError` without the `cameras` extra, saying how to install it.
+    """
+    rank = {backend: k for k, backend in enumerate(_PREFERRED_BACKENDS)}
+    chosen: dict[Any, Any] = {}
+    for info in _enumerate_cameras():
+        key = info.path or (info.name, info.index)
+        held = chosen.get(key)
+        if held is None or rank.get(info.backend, len(rank)) < rank.get(held.backend, len(rank)):
+            chosen[key] = info
+    cameras = []
+    for info in chosen.values():
+        backend = int(info.backend)
+        name = _BACKEND_NAMES.get(backend) or cv2.videoio_registry.getBackendName(backend)
+        usb = f"{info.vid:04X}:{info.pid:04X}" if info.vid is not None and info.pid is not None else None
+        index = int(info.index) + (backend if backend != cv2.CAP_ANY else 0)
+        cameras.append(CameraDevice(index, str(info.name), name, info.path, usb, _persistent_links(info.path)))
+    return cameras
+
+
+def find_camera(name: str, cameras: list[CameraDevice] | None = None) -> int:
+    """The index of the one camera that `name` names, for `VideoSource` or `live --source`.
+
+    Camera indices change when cameras are plugged in another order or the computer
+    restarts; a camera's name, serial number and device path do not. A camera whose name
+    is `name` (ignoring case) is chosen; otherwise one whose name, device path, USB id
+    or persistent link (on Linux `/dev/v4l/by-id/...`, which holds the serial number)
+    contains `name`.
+
+    **Arguments:**
+
+    - `name`: a camera name, or part of a name, serial number, path or `VID:PID`.
+    - `cameras`: the cameras to choose from; default [`list_cameras`][].
+
+    **Returns:** the camera's [`index`][moirejax.live.CameraDevice].
+
+    **Raises:** `ValueError`, one line listing the cameras found, when no camera or several
+    match; `ImportError` without the `cameras` extra.
+    """
+    cameras = list_cameras() if cameras is None else cameras
+    wanted = name.strip().casefold()
+    matches = [c for c in cameras if c.name.strip().casefold() == wanted]
+    if not matches:
+        matches = [
+            c
+            for c in cameras
+            if any(wanted in field.casefold() for field in (c.name, c.path or "", c.usb_id or "", *c.aliases))
+        ]
+    if len(matches) == 1:
+        return matches[0].index
+    if not matches:
+        found = "; ".join(c.describe() for c in cameras) if cameras else "none"
+        raise ValueError(f"{name}: no camera's name, serial, path or USB id contains it; cameras found: {found}")
+    listed = "; ".join(c.describe() for c in matches)
+    raise ValueError(f"{name}: {len(matches)} cameras match: {listed}; give more of the name, the serial or path")

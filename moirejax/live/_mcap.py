@@ -18,24 +18,39 @@ Topics, under a prefix (default `/moirejax`):
 The JSON on `{prefix}/record` is the same line the other sinks send, so status records,
 the covariance and the latency survive even though ROS has no message for them.
 
+[`record_inversion`][] hands the same sink a recording that `moirejax invert` has already
+inverted, so that an offline run gives the file a live run gives.
+
 The file is written under a temporary name (`path + ".part"`) and moved onto `path` only
 when the sink is closed. A run that is killed therefore never leaves a truncated file
 at `path`; what it leaves is the `.part` file, whose complete chunks `mcap recover`
-can salvage.
+can salvage. A run that fails or is interrupted deletes it with
+[`abort`][McapSink.abort].
 """
 
+import csv
 import math
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Iterator
+from pathlib import Path
 from typing import Any
 
 import cv2
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from .._conventions import WRENCH_CONVENTION
-from ._sinks import _CountingSink, WrenchRecord
+from .._conventions import PA_PER_MPA, WRENCH_AXES, WRENCH_CONVENTION
+from .._fileio import DataError
+from ..data import Dataset
+from ..inverse import check_source
+from ..physics import Contact, Device, surface_grid, surface_tractions
+from ._records import RecordStream
+from ._run import PRESSURE_SHAPE
+from ._sinks import _CountingSink, make_record, Sink, WrenchRecord
+from ._types import Real
 
 
 _SEPARATOR = "=" * 80 + "\n"
@@ -124,6 +139,12 @@ def _as_uint8(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
+WRENCH_STATUSES = ("converged", "max_steps", "no_contact")
+"""The statuses whose wrench an MCAP file publishes as a WrenchStamped: load estimates and
+the zero of an untouched frame. The others (no wrench, or one the inversion does not
+believe) are records with their status only."""
+
+
 class McapSink(_CountingSink):
     """Records to an MCAP file with ROS 2 (CDR) messages, for Foxglove and `ros2 bag`.
 
@@ -153,6 +174,11 @@ class McapSink(_CountingSink):
     - `images`: whether [`emit_image`][McapSink.emit_image] writes anything.
     - `image_format`: `"jpeg"` or `"png"` (lossless, larger).
     - `jpeg_quality`: 0 to 100.
+    - `wrench_statuses`: the record statuses whose wrench goes on `{prefix}/wrench`
+        (e.g. [`WRENCH_STATUSES`][moirejax.live.WRENCH_STATUSES], what `invert --mcap`
+        publishes); default every record with a finite wrench. A record of another status
+        is written on `{prefix}/record` only, so that a subscriber to the wrench never takes
+        a frame the inversion did not believe (`"unexplained"`) for a reading.
 
     **Raises:** `ImportError` without the `ros` extra; `ValueError` for a bad option or a
     missing folder; `OSError` if the folder is not writable; `FileExistsError` if a
@@ -167,6 +193,7 @@ class McapSink(_CountingSink):
         images: bool = True,
         image_format: str = "jpeg",
         jpeg_quality: int = 90,
+        wrench_statuses: Collection[str] | None = None,
     ):
         super().__init__()
         self.stats.update(images=0, pressure_maps=0)
@@ -184,6 +211,7 @@ class McapSink(_CountingSink):
         self.images = images
         self.image_format = image_format
         self.jpeg_quality = int(jpeg_quality)
+        self.wrench_statuses = None if wrench_statuses is None else frozenset(wrench_statuses)
 
         folder = os.path.dirname(os.path.abspath(self.path))
         if not os.path.isdir(folder):
@@ -249,13 +277,14 @@ class McapSink(_CountingSink):
         **Arguments:**
 
         - `record`: the record; a wrench is written when `force` and `torque` are both
-            present and finite.
+            present and finite (and its status is one of `wrench_statuses`, if given).
         """
 
         def write() -> None:
             header, ns = self._header(record)
             self._write("/record", "std_msgs/msg/String", {"data": record.to_json()}, ns)
-            if record.force is not None and record.torque is not None:
+            believed = self.wrench_statuses is None or record.status in self.wrench_statuses
+            if believed and record.force is not None and record.torque is not None:
                 force = [float(v) for v in record.force]
                 torque = [float(v) for v in record.torque]
                 if all(math.isfinite(v) for v in force + torque):
@@ -325,6 +354,24 @@ class McapSink(_CountingSink):
 
         self._guarded(write)
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Add a metadata record (string keys and values) to the file, e.g. where its data came from."""
+        self._guarded(lambda: self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()}))
+
+    def abort(self) -> None:
+        """Stop recording and delete the unfinished `path + ".part"`: nothing appears at
+        `path`. For a run that fails or is interrupted; idempotent, and nothing once
+        [`close`][McapSink.close] has finished the file."""
+        with self._lock:
+            writer, self._writer = self._writer, None
+            if writer is None:
+                return
+            self._stream.close()
+            try:
+                os.remove(self.part_path)
+            except FileNotFoundError:
+                pass
+
     def close(self) -> None:
         """Finish the MCAP file and move it from `path + ".part"` onto `path`; idempotent.
 
@@ -340,3 +387,168 @@ class McapSink(_CountingSink):
             finally:
                 self._stream.close()
             os.replace(self.part_path, self.path)
+
+
+# --------------------------------------------------------------------------- inverted recordings
+
+# Statuses whose wrench is an estimate of a load: they get a pressure map and a contact area.
+_LOAD_STATUSES = frozenset({"converged", "max_steps"})
+# Columns of the wrench CSV of `invert_recording` that a record is made from.
+_CSV_COLUMNS = ("frame", *WRENCH_AXES, "x0", "y0", "radius", "status", "message")
+
+
+def _read_inversion(path: Path) -> list[dict[str, str]]:
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            missing = [c for c in _CSV_COLUMNS if c not in (reader.fieldnames or ())]
+            if missing:
+                raise DataError(f"{path}: no column {', '.join(missing)}; not a wrench CSV of `moirejax invert`")
+            return list(reader)
+    except UnicodeDecodeError as e:
+        raise DataError(f"{path}: not a text CSV ({e.reason})") from None
+
+
+def _number(row: dict[str, str], column: str, path: Path, line: int) -> float:
+    try:
+        return float(row[column])
+    except (TypeError, ValueError):
+        raise DataError(f"{path} row {line}: field {column!r}: {row[column]!r} is not a number") from None
+
+
+def _frame_stamps(kind: str, source: Path, names: list[str], fps: Real | None) -> tuple[np.ndarray, str]:
+    """Each row's stamp (s) and a line saying where the stamps come from."""
+    index = np.arange(len(names), dtype=np.float64)
+    if fps is not None:
+        return index / float(fps), f"frame index / {float(fps):g} fps (given)"
+    rate, what = None, ""
+    if kind == "dataset":
+        dataset = Dataset(source)
+        if dataset.t is not None:
+            by_name = dict(zip(dataset.frame_names, dataset.t))
+            if all(name in by_name for name in names):
+                times = np.array([by_name[name] for name in names], np.float64)
+                if times.size and times.min() < 0:
+                    return times - times.min(), "the dataset's t column, shifted to start at 0"
+                return times, "the dataset's t column (s)"
+        rate, what = dataset.fps, "the dataset's fps"
+    elif kind == "video":
+        capture = cv2.VideoCapture(str(source))
+        try:
+            rate, what = capture.get(cv2.CAP_PROP_FPS), "the video's frame rate"
+        finally:
+            capture.release()
+    if rate is not None and math.isfinite(rate) and rate > 0:
+        return index / float(rate), f"frame index / {float(rate):g} fps ({what})"
+    return index, "the frame index as seconds: the recording gives no frame rate"
+
+
+def _frame_images(kind: str, source: Path, names: list[str]) -> Iterator[np.ndarray | None]:
+    """Each row's frame as stored (gray or BGR; 16-bit frames scaled to [0, 1]), or `None`."""
+    if kind == "video":
+        capture = cv2.VideoCapture(str(source))
+        try:
+            for _ in names:
+                ok, image = capture.read()
+                yield image if ok else None
+        finally:
+            capture.release()
+        return
+    folder = source / "frames" if kind == "dataset" else source
+    for name in names:
+        image = cv2.imread(str(folder / name), cv2.IMREAD_UNCHANGED)
+        if image is not None and image.dtype == np.uint16:
+            image = image.astype(np.float32) / np.float32(65535.0)
+        yield image
+
+
+def record_inversion(
+    sink: Sink,
+    source: str | os.PathLike,
+    wrench_csv: str | os.PathLike,
+    device: Device,
+    *,
+    records: RecordStream | None = None,
+    fps: Real | None = None,
+    pressure_shape: tuple[int, int] | None = PRESSURE_SHAPE,
+) -> str:
+    """Hand an inverted recording to a sink frame by frame, as the live loop hands a camera's.
+
+    `moirejax invert --mcap` writes with it: every row of the wrench CSV that
+    `moirejax invert` wrote becomes a record (with
+    the row's status and message; a frame without a wrench has `force` and `torque`
+    `null`, never zero), completed by `records` (sensor and frame names, sequence,
+    `in_contact`, range flags, centre of pressure). A sink with `emit_image` also gets the
+    frame, and one with `emit_pressure` the pressure map of each frame whose wrench is a
+    load estimate (`converged`, `max_steps`), drawn as the live loop draws it from the
+    row's wrench and contact patch. The wrench is the CSV's, so the two files agree to
+    the digit. The records carry no covariance: the CSV keeps only its square-rooted
+    diagonal, the `sigma_*` columns.
+
+    A recording has no capture clock of its own, so the stamps are, in this order of
+    preference: the frame index over `fps` when given; a dataset's `t` column (shifted to
+    start at 0 if it goes negative); the frame index over the recording's frame rate (a
+    dataset's `fps`, a video's); else the frame index as seconds. The returned line says
+    which, and a sink with `add_metadata` (an [`McapSink`][]) stores it with the source
+    and the CSV in a `moirejax_inversion` metadata record.
+
+    **Arguments:**
+
+    - `sink`: where the records go (not closed here).
+    - `source`: the dataset, folder of images or video that was inverted.
+    - `wrench_csv`: the CSV `moirejax invert` wrote for it.
+    - `device`: the unit, for the pressure maps.
+    - `records`: completes each record (default: a [`RecordStream`][] with the default names).
+    - `fps`: the frame rate of the stamps, over the recording's own.
+    - `pressure_shape`: the grid of the pressure maps; `None` for none (also for a
+        device whose image is not square).
+
+    **Returns:** the line saying where the stamps come from.
+
+    **Raises:** [`DataError`][moirejax.DataError] for a source or CSV that cannot be read,
+    or a CSV that is not a wrench CSV.
+    """
+    if fps is not None and not fps > 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    path, csv_path = Path(source), Path(wrench_csv)
+    kind = check_source(path)
+    rows = _read_inversion(csv_path)
+    names = [row["frame"] for row in rows]
+    stamps, stamps_from = _frame_stamps(kind, path, names, fps)
+    records = records if records is not None else RecordStream()
+    if hasattr(sink, "add_metadata"):
+        sink.add_metadata(
+            "moirejax_inversion", {"source": str(path), "wrench_csv": str(csv_path), "stamps": stamps_from}
+        )
+    shape = (device.height, device.width)
+    pressure_of = None
+    if pressure_shape is not None and shape[0] * pressure_shape[1] == shape[1] * pressure_shape[0]:
+        grid = surface_grid(pressure_shape, device.px_per_mm, shape, device.a, device.Z)
+        pressure_of = jax.jit(lambda wrench, contact: surface_tractions(wrench, contact, grid)[2] * PA_PER_MPA)
+    dtype = device.p1.dtype
+    for i, (row, image) in enumerate(zip(rows, _frame_images(kind, path, names))):
+        line = i + 2  # the header is line 1
+        wrench = np.array([_number(row, axis, csv_path, line) for axis in WRENCH_AXES])
+        status = row["status"]
+        radius = _number(row, "radius", csv_path, line)
+        has_load = status in _LOAD_STATUSES and bool(np.all(np.isfinite(wrench)))
+        record = make_record(
+            stamp=stamps[i],
+            frame=i,
+            mode="tactile",
+            status=status,
+            wrench=None if np.all(np.isnan(wrench)) else wrench,
+            latency_ms=math.nan,  # offline: no capture-to-output time
+            message=row["message"],
+            contact_area_mm2=math.pi * radius**2 if has_load else None,
+        )
+        record = records.finish(record)
+        sink.emit(record)
+        if image is not None and hasattr(sink, "emit_image"):
+            sink.emit_image(image, record)
+        if pressure_of is not None and has_load and hasattr(sink, "emit_pressure"):
+            x0, y0 = (_number(row, c, csv_path, line) for c in ("x0", "y0"))
+            contact = Contact(jnp.asarray(x0, dtype), jnp.asarray(y0, dtype), jnp.asarray(radius, dtype))
+            pressure = np.asarray(pressure_of(jnp.asarray(wrench, dtype), contact), np.float32)
+            sink.emit_pressure(pressure, record)
+    return stamps_from

@@ -37,6 +37,7 @@ from ._camera import (
     CLOSED,
     END_OF_STREAM,
     EndOfStreamError,
+    find_camera,
     FolderSource,
     Frame,
     OPEN_FAILED,
@@ -385,8 +386,8 @@ def _is_sim(spec: str) -> bool:
 
 
 def open_source(spec: str, *, replay_fps: float | None = None) -> AbstractFrameSource:
-    """A frame source from a spec: a camera index (`"0"`), a URL or GStreamer pipeline,
-    a folder of images, or a video file (played at `replay_fps` if given, else as fast as
+    """A frame source from a spec: a camera index (`"0"`) or name ([`find_camera`][]), a URL
+    or GStreamer pipeline, a folder of images, or a video file (played at `replay_fps` if given, else as fast as
     it decodes).
 
     (`"sim"` is handled by [`run_live`][], which needs the device.)
@@ -400,6 +401,12 @@ def open_source(spec: str, *, replay_fps: float | None = None) -> AbstractFrameS
         return FolderSource(path)
     if path.is_file():
         return VideoSource(path, replay_fps=replay_fps)
+    if "/" not in spec and not path.suffix:
+        # A camera's name, serial number or path: its index ([`find_camera`][]).
+        try:
+            return VideoSource(str(find_camera(spec)))
+        except ImportError as e:
+            raise FileNotFoundError(f"{spec}: not a camera index, URL, folder or video file; {e}") from None
     raise FileNotFoundError(f"{spec}: not 'sim', a camera index, a URL, a folder or a video file")
 
 

@@ -161,9 +161,17 @@ class BandModel(eqx.Module):
     light_carrier: Complex[Array, "sets h w"] | None
 
     def __call__(self, wrench: Float[Array, "6"], contact: Contact, exposure: ArrayLike = 1.0) -> FringeFields:
-        device = self.mechanics.device
         state = self.mechanics(wrench, contact)
-        upper = upper_grating_phase(device, self.x, self.y, state.displacement)
+        return self.of_deformation(state.displacement, state.light, exposure)
+
+    def of_deformation(
+        self, displacement: Float[Array, "3 h w"], light: Float[ArrayLike, "*#h #w"] = 0.0, exposure: ArrayLike = 1.0
+    ) -> FringeFields:
+        """The bands of any surface `displacement` `(ux, uy, w)` (mm) on the model grid, with
+        the elastomer's own `light` there (the glow a contact scatters; none by default)."""
+        device = self.mechanics.device
+        light = jnp.broadcast_to(jnp.asarray(light, displacement.dtype), displacement.shape[1:])
+        upper = upper_grating_phase(device, self.x, self.y, displacement)
         beat = upper - self.reference_phase
         # Everything of the frame below the carriers: the product over line sets of their
         # beats, and the elastomer light seen through the reference grating. The light is a
@@ -171,13 +179,13 @@ class BandModel(eqx.Module):
         low_sets = jax.vmap(line_transmission)(beat, self.beat_weights)
         transmission = jnp.prod(low_sets, axis=0)
         gain = device.optics.gain * jnp.asarray(exposure)
-        low = device.optics.offset + gain * (self.radiance * transmission + self.mean_reference * state.light)
+        low = device.optics.offset + gain * (self.radiance * transmission + self.mean_reference * light)
         fringe, brightness = self.band_pass(low)
         if self.carrier_pass is not None and self.light_carrier is not None:
             # The scene's light through both gratings, and the elastomer's light through the
             # reference grating alone, whose carrier sits beside the upper one's.
             carriers = self._carriers(upper, beat, low_sets) * self.radiance.astype(fringe.dtype)[None] + (
-                self.light_carrier * state.light.astype(fringe.dtype)[None]
+                self.light_carrier * light.astype(fringe.dtype)[None]
             )
             fringe = jnp.concatenate([fringe, self.carrier_pass(gain.astype(fringe.dtype) * carriers)])
         return FringeFields(fringe=fringe, brightness=brightness, reference_wavevector=self.reference_wavevector)
