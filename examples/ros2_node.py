@@ -36,20 +36,16 @@ not from PyPI), in an environment with moirejax:
 
 import argparse
 import math
-import os
 import sys
 
 import moirejax as mj
 import moirejax.live
 
 
-# Statuses whose wrench is a reading: an estimate of the load, or the zero of an untouched sensor.
-READING_STATUSES = ("converged", "max_steps", "no_contact")
-
-
 def wrench_message(record: mj.live.WrenchRecord) -> dict | None:
     """The `geometry_msgs/msg/WrenchStamped` of a record, as nested dicts; `None` when the
-    record carries no reading (see `READING_STATUSES`) or its wrench is not finite.
+    record carries no reading (a status outside `moirejax.live.WRENCH_STATUSES`: an
+    estimate of the load, or the zero of an untouched sensor) or its wrench is not finite.
 
     **Arguments:**
 
@@ -60,7 +56,7 @@ def wrench_message(record: mj.live.WrenchRecord) -> dict | None:
     wrench, or `None`.
     """
     wrench = record.wrench
-    if record.status not in READING_STATUSES or wrench is None or not all(math.isfinite(v) for v in wrench):
+    if record.status not in mj.live.WRENCH_STATUSES or wrench is None or not all(math.isfinite(v) for v in wrench):
         return None
     if not math.isfinite(record.stamp):
         return None
@@ -72,13 +68,6 @@ def wrench_message(record: mj.live.WrenchRecord) -> dict | None:
         "header": {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": record.frame_id},
         "wrench": {"force": force, "torque": torque},
     }
-
-
-def _source(spec: str) -> str:
-    """`--source` as `open_sensor` takes it: a camera's name or serial becomes its index."""
-    if spec == "sim" or spec.isdigit() or "://" in spec or os.path.exists(spec):
-        return spec
-    return str(moirejax.live.find_camera(spec))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -103,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     record_publisher = node.create_publisher(String, "record", 10)
     device, _ = mj.load_calibrated(args.device)
     node.get_logger().info(f"opening {args.source} (compiling the inversion takes a while)")
-    sensor = mj.open_sensor(device, _source(args.source), sensor_id=args.sensor_id, frame_id=args.frame_id)
+    sensor = mj.open_sensor(device, args.source, sensor_id=args.sensor_id, frame_id=args.frame_id)
 
     def publish(record: mj.live.WrenchRecord) -> None:
         # Called on the sensor's thread for every record; rclpy's publishers are thread-safe.

@@ -117,6 +117,7 @@ from .physics import (
     gaussian_mtf as gaussian_mtf,
     geometric_amplification as geometric_amplification,
     grating_wavevector as grating_wavevector,
+    grid_shape as grid_shape,
     half_space_compliance as half_space_compliance,
     HighFidelity as HighFidelity,
     layer_compliance as layer_compliance,

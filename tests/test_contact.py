@@ -4,6 +4,7 @@ import jaxtyping
 import numpy as np
 import pytest
 
+import moirejax as mj
 from moirejax.physics import layer_response
 from moirejax.physics._contact import (
     _hertz_transform,
@@ -181,3 +182,21 @@ def test_traction_spectrum_gradients():
         return jnp.stack([spectrum.real, spectrum.imag])
 
     check_grad_against_fd(f, (jnp.array([0.1, -0.05, 0.9, 0.003, -0.002, 0.004]), Contact(1.0, -0.5, 3.0)))
+
+
+@pytest.mark.parametrize(
+    "image, cells, grid",
+    [
+        ((512, 512), 96, (96, 96)),
+        ((480, 640), 128, (96, 128)),
+        ((640, 480), 100, (100, 75)),
+        ((250, 300), 64, (55, 66)),
+    ],
+)
+def test_grid_shape_keeps_the_image_aspect_with_square_cells(image, cells, grid):
+    assert mj.grid_shape(image, cells) == grid
+    # Square cells: the grid's aspect ratio is the image's exactly, which surface_grid needs.
+    assert grid[0] * image[1] == grid[1] * image[0] and max(grid) >= cells
+    mj.surface_grid(grid, 16.0, image, 3.0, 12.0)
+    with pytest.raises(ValueError, match="grid_shape"):
+        mj.surface_grid((grid[0] + 1, grid[1]), 16.0, image, 3.0, 12.0)

@@ -95,6 +95,23 @@ def test_model_grid_can_be_set_by_the_environment(mid, monkeypatch):
     assert mj.default_model_shape(mid) == mj.model_grid_for(mid)
 
 
+def test_a_camera_that_is_not_square_is_simulated_and_inverted():
+    # 240 x 320 pixels (a 4:3 camera): the model grid, the simulator's mechanics and the
+    # demodulator's coarse grid all keep the image's aspect ratio.
+    unit = mj.preset("mid", height=240, width=320)
+    rows, cols = mj.default_model_shape(unit)
+    assert rows * 320 == cols * 240
+    simulator = mj.Simulator(unit, fidelity="high")
+    rest = np.mean([np.asarray(simulator.frame(jax.random.PRNGKey(i), np.zeros(6), Contact())) for i in range(2)], 0)
+    inverter = Inverter(unit, rest)
+    wrench = np.array([0.05, -0.03, 0.6, 0.002, -0.001, 0.002])
+    frame = simulator.frame(jax.random.PRNGKey(9), wrench, Contact(x0=1.0, y0=-0.5, radius=2.5))
+    estimate = invert(inverter, frame)
+    assert int(estimate.status) == Status.CONVERGED
+    error = np.abs(np.asarray(estimate.wrench) - wrench) / np.asarray(WRENCH_SCALE)
+    assert np.all(error < 0.05), error
+
+
 def test_no_recompilation_per_frame(mid, inverter):
     frames = [
         render_frame(mid, jnp.array([0.0, 0.0, fz, 0.0, 0.0, 0.0]), Contact(0.0, 0.0, 3.5)) for fz in (0.4, 0.8, 1.1)

@@ -69,6 +69,8 @@ def _add_device_arguments(parser: argparse.ArgumentParser, *, design_flags: bool
         g.add_argument("--Z", type=float, help="camera distance to the reference grating, mm")
         g.add_argument("--px-per-mm", type=float, help="rectified resolution, px/mm")
         g.add_argument("--size", type=int, help="rectified image size, pixels (square)")
+        g.add_argument("--height", type=int, help="rectified image height, pixels (with --width: not square)")
+        g.add_argument("--width", type=int, help="rectified image width, pixels")
         g.add_argument("--E", type=float, help="elastomer Young's modulus, MPa")
         g.add_argument("--nu", type=float, help="elastomer Poisson ratio")
         g.add_argument("--thickness", type=float, help="elastomer thickness, mm")
@@ -123,6 +125,9 @@ def _device_from_args(args: argparse.Namespace):
             changes[field] = math.radians(value)
     if getattr(args, "size", None) is not None:
         changes["height"] = changes["width"] = args.size
+    for side in ("height", "width"):
+        if getattr(args, side, None) is not None:
+            changes[side] = getattr(args, side)
     elastomer = {k: getattr(args, k) for k in ("E", "nu", "thickness") if getattr(args, k, None) is not None}
     optics = {k: getattr(args, k) for k in _OPTICS_FLAGS if getattr(args, k, None) is not None}
     if not changes and not elastomer and not optics and not getattr(args, "layout", None):

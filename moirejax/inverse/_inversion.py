@@ -71,7 +71,7 @@ from ..observe import (
     stray_beat_clearance,
     white_noise_variance,
 )
-from ..physics import Device
+from ..physics import Device, grid_shape
 from ._estimate import finish
 from ._solvers import best_start, chord, solve_cold
 from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track, TYPICAL_RADIUS
@@ -115,7 +115,8 @@ def model_grid_for(
 ) -> tuple[int, int]:
     """The mechanics and fringe grid an [`Inverter`][] needs for `device`: `samples_per_period`
     across the shortest moiré period and `samples_per_radius` across a contact of
-    `smallest_radius` mm, rounded up to a multiple of 16.
+    `smallest_radius` mm along the image's longer side, rounded up to a multiple of 16, with
+    the image's aspect ratio ([`grid_shape`][]).
 
     The period term: a coarser grid aliases the fringe's second harmonic and biases shear
     and twist on short-period designs (a 1.8 mm period on a 64 grid over 32 mm read 5%
@@ -130,8 +131,7 @@ def model_grid_for(
     # The mechanics grid spans the contact surface, magnified by (Z + a)/Z over the image.
     surface_mm = size_mm * float((device.Z + device.a) / device.Z)
     needed = max(samples_per_period * size_mm / period, samples_per_radius * surface_mm / smallest_radius)
-    n = 16 * math.ceil(needed / 16)
-    return (n, n)
+    return grid_shape((device.height, device.width), 16 * math.ceil(needed / 16))
 
 
 def default_model_shape(device: Device) -> tuple[int, int]:
@@ -144,7 +144,7 @@ def default_model_shape(device: Device) -> tuple[int, int]:
         return model_grid_for(device)
     if not override.isdigit() or int(override) < 16:
         raise ValueError(f"MOIREJAX_MODEL_GRID must be a grid size of at least 16, got {override!r}")
-    return (int(override), int(override))
+    return grid_shape((device.height, device.width), int(override))
 
 
 def default_carriers() -> bool | None:
@@ -303,7 +303,9 @@ class Inverter(eqx.Module):
             # bands need: a coarser grid would fold the fringe band over its Nyquist limit.
             needed = self.demodulator.smallest_band_grid(tuple(range(sets)))
             rows, cols = default_model_shape(device)
-            model_shape = (max(rows, needed), max(cols, needed))
+            if min(rows, cols) < needed:
+                rows, cols = grid_shape((device.height, device.width), -(-needed * max(rows, cols) // min(rows, cols)))
+            model_shape = (rows, cols)
         self.model_shape = (int(model_shape[0]), int(model_shape[1]))
         zero = LoadState.at_rest(dtype=device.p1.dtype)
         if reference is None:

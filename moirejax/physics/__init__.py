@@ -5,6 +5,7 @@ It imports only `data` and the foundation modules (`_plotting`, `_fileio`, `_con
 
 from ._contact import (
     Contact as Contact,
+    grid_shape as grid_shape,
     surface_grid as surface_grid,
     surface_tractions as surface_tractions,
     SurfaceGrid as SurfaceGrid,

@@ -65,6 +65,20 @@ class SurfaceGrid(eqx.Module):
     spacing: Float[Array, ""]
 
 
+def grid_shape(image_shape: tuple[int, int], cells: int) -> tuple[int, int]:
+    """The smallest grid with at least `cells` cells along the image's longer side whose cells
+    are square in the image (the aspect ratio [`surface_grid`][] needs): `(cells, cells)`
+    for a square image, `(96, 128)` for 128 cells over a 480 x 640 one. An image whose sides
+    share no common factor needs a grid of its own size."""
+    h, w = (int(v) for v in image_shape)
+    if h < 1 or w < 1 or cells < 1:
+        raise ValueError(f"grid_shape needs positive sizes, got image {image_shape} and {cells} cells")
+    common = math.gcd(h, w)
+    unit_h, unit_w = h // common, w // common
+    k = -(-int(cells) // max(unit_h, unit_w))
+    return (unit_h * k, unit_w * k)
+
+
 def surface_grid(
     shape: tuple[int, int], px_per_mm: ArrayLike, image_shape: tuple[int, int], a: ArrayLike, Z: ArrayLike
 ) -> SurfaceGrid:
@@ -75,7 +89,10 @@ def surface_grid(
     h, w = shape
     H, W = image_shape
     if H * w != W * h:
-        raise ValueError(f"grid {shape} and image {image_shape} must have the same aspect ratio")
+        raise ValueError(
+            f"grid {shape} and image {image_shape} must have the same aspect ratio "
+            f"(e.g. {grid_shape(image_shape, max(h, w))}, see grid_shape)"
+        )
     Z = jnp.asarray(Z)
     spacing = (W / w) / jnp.asarray(px_per_mm) * (Z + jnp.asarray(a)) / Z
     cols = (jnp.arange(w, dtype=float) - (w - 1) / 2) * spacing

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import jax.random as jr
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
-from ._contact import Contact, surface_grid, surface_tractions, SurfaceGrid, traction_spectrum
+from ._contact import Contact, grid_shape, surface_grid, surface_tractions, SurfaceGrid, traction_spectrum
 from ._device import Device
 from ._elastomer import layer_response, LayerResponse
 from ._optics import (
@@ -184,13 +184,17 @@ def scene_radiance(
 
 
 @eqx.filter_jit
+def _mechanics_shape(device: Device, shape: tuple[int, int] | None) -> tuple[int, int]:
+    return grid_shape((device.height, device.width), 256) if shape is None else shape
+
+
 def render_frame(
     device: Device,
     wrench: Float[Array, "6"],
     contact: Contact,
     *,
     exposure: ArrayLike = 1.0,
-    mechanics_shape: tuple[int, int] = (256, 256),
+    mechanics_shape: tuple[int, int] | None = None,
 ) -> Float[Array, "h w"]:
     """Render the `model`-fidelity frame (float, unclipped, noise-free) of `device` under `wrench`.
 
@@ -201,14 +205,15 @@ def render_frame(
     - `contact`: the [`Contact`][] patch carrying the load.
     - `exposure`: multiplies the radiance (an exposure or illumination change).
     - `mechanics_shape`: grid on which the elastomer is solved, then interpolated
-      (cubic) to the pixels. The displacement is smooth on the scale of the layer
-      thickness, but a small contact's edge is not: the default 256 x 256 (0.16 mm on
+      (cubic) to the pixels; `None` for 256 cells along the image's longer side
+      ([`grid_shape`][]). The displacement is smooth on the scale of the layer
+      thickness, but a small contact's edge is not: 256 x 256 (0.16 mm on
       the Mid design's contact surface) stays within 0.003 of full scale of a 1024 x 1024 solve, where
       128 x 128 strayed by 0.017 (0.05 with linear interpolation) beside a 2.6 mm contact.
 
     **Returns:** the frame, shape `(device.height, device.width)`, in camera units (about 0..1).
     """
-    state = deformation(device, wrench, contact, mechanics_shape)
+    state = deformation(device, wrench, contact, _mechanics_shape(device, mechanics_shape))
     shape = (device.height, device.width)
     return render_deformed(device, _upsample(state.displacement, shape), _upsample(state.light, shape), exposure)
 
@@ -278,7 +283,7 @@ def render_frame_high(
     fidelity: HighFidelity = HighFidelity(),
     *,
     exposure: ArrayLike = 1.0,
-    mechanics_shape: tuple[int, int] = (256, 256),
+    mechanics_shape: tuple[int, int] | None = None,
     fabrication_key: PRNGKeyArray | None = None,
 ) -> Float[Array, "h w"]:
     """Render a `high`-fidelity frame, noisy and quantised to `fidelity.bit_depth` (values in [0, 1]).
@@ -286,7 +291,7 @@ def render_frame_high(
     `fabrication_key` fixes the unit's grating phase error (the same for every frame of
     one unit); `key` draws the per-frame noise.
     """
-    state = deformation(device, wrench, contact, mechanics_shape)
+    state = deformation(device, wrench, contact, _mechanics_shape(device, mechanics_shape))
     return render_deformed_high(
         key, device, state.displacement, state.light, fidelity, exposure=exposure, fabrication_key=fabrication_key
     )

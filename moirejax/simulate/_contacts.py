@@ -36,7 +36,15 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._conventions import NMM_PER_NM, PAPER_RANGES
-from ..physics import Device, gaussian_blur_fft, layer_response, surface_grid, SurfaceGrid, traction_resultant
+from ..physics import (
+    Device,
+    gaussian_blur_fft,
+    grid_shape,
+    layer_response,
+    surface_grid,
+    SurfaceGrid,
+    traction_resultant,
+)
 
 
 CONTACT_SHAPES = ("sphere", "flat", "ring", "line", "square")
@@ -147,11 +155,14 @@ class IndenterFrame(eqx.Module):
 
 
 def indenter_deformation(
-    device: Device, indenters: Sequence[Indenter], shape: tuple[int, int] = (256, 256), supersample: int = 4
+    device: Device, indenters: Sequence[Indenter], shape: tuple[int, int] | None = None, supersample: int = 4
 ) -> IndenterFrame:
     """Solve the elastomer under `indenters` on a mechanics grid of `shape` covering the image
+    (`None`: 256 cells along its longer side, [`grid_shape`][moirejax.grid_shape])
     ([`traction_deformation`][moirejax.traction_deformation] of their
     [`indenter_tractions`][moirejax.indenter_tractions])."""
+    if shape is None:
+        shape = grid_shape((device.height, device.width), 256)
     grid = surface_grid(shape, device.px_per_mm, (device.height, device.width), device.a, device.Z)
     return traction_deformation(device, indenter_tractions(indenters, grid, supersample))
 
