@@ -77,6 +77,30 @@ def test_a_unit_that_does_not_glow_keeps_its_wrench(mid, inverter):
     assert np.all(np.abs(scaled_error) < 0.05), scaled_error
 
 
+def test_the_reference_correction_leaves_the_elastomer_light_unscaled(mid):
+    # A unit whose far grating is three times as defocused as its device says: its fringes
+    # have less contrast, which the reference correction scales the prediction by, but its
+    # elastomer's light passes the reference grating alone and is not dimmed. At the true
+    # load the corrected prediction must then explain the fringe phase better than one that
+    # scales the light too.
+    unit = eqx.tree_at(lambda d: d.optics.defocus, mid, mid.optics.defocus * 3)
+    blurred = Inverter(mid, reference=render_frame(unit, jnp.zeros(6), Contact()))
+    wrench, contact = jnp.asarray([0.0, 0.0, 0.8, 0.002, -0.001, 0.0]), Contact(x0=1.0, y0=-0.5, radius=2.5)
+    observed = blurred.observe(render_frame(unit, wrench, contact))
+    predicted = blurred.model(wrench, contact)
+    families, m, n = blurred.fringe_weight.shape
+    phase = slice(families * m * n, 2 * families * m * n)
+
+    def misfit(fields):
+        return float(np.linalg.norm(blurred.band_residual(observed, fields)[phase]))
+
+    scaled_too = eqx.tree_at(lambda f: f.light, predicted, None, is_leaf=lambda x: x is None)
+    change = float(np.linalg.norm(blurred._zero_residuals(observed)[phase]))
+    # Measured: 3% of the phase change left, against 42% when the light is scaled too.
+    assert misfit(predicted) < 0.2 * misfit(scaled_too)
+    assert misfit(predicted) < 0.06 * change
+
+
 def test_fringe_change_centre_finds_a_sheared_contact(mid, inverter):
     # The cold solve's extra start: where the fringes moved, for a light, sheared press.
     contact = Contact(3.0, -2.0, 3.0)

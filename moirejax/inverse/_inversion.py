@@ -412,14 +412,22 @@ class Inverter(eqx.Module):
 
         The prediction is first corrected for the unit's fixed pattern: scaled by this unit's
         reference bands over the model's no-load bands (`model_reference`, by default those of
-        this inverter's model; calibration passes those of the parameters it is trying).
+        this inverter's model; calibration passes those of the parameters it is trying),
+        all but the elastomer's own light (`FringeFields.light`), which passes the
+        reference grating alone.
         Layout: the fringe change along the predicted fringe phasor at every coarse-grid point
         (amplitude), across it (phase), then the brightness change, each with this inverter's
         weights ([`Inverter.phase_only`][] zeroes all but the phase).
         """
         if model_reference is None:
             model_reference = self.model_reference
-        fringe = predicted.fringe * complex_ratio(self.reference.fringe, model_reference.fringe)
+        ratio = complex_ratio(self.reference.fringe, model_reference.fringe)
+        if predicted.light is None:
+            fringe = predicted.fringe * ratio
+        else:
+            # The elastomer's light passes the reference grating alone: the unit's contrast
+            # of the gratings' product, which the ratio corrects, does not apply to it.
+            fringe = (predicted.fringe - predicted.light) * ratio + predicted.light
         brightness = predicted.brightness - model_reference.brightness + self.reference.brightness
         return self._band_residual(observed.fringe - fringe, observed.brightness - brightness, fringe)
 

@@ -181,14 +181,19 @@ class BandModel(eqx.Module):
         gain = device.optics.gain * jnp.asarray(exposure)
         low = device.optics.offset + gain * (self.radiance * transmission + self.mean_reference * light)
         fringe, brightness = self.band_pass(low)
+        # The elastomer's light alone, which the reference correction must leave unscaled.
+        light_fringe, _ = self.band_pass(gain * self.mean_reference * light)
         if self.carrier_pass is not None and self.light_carrier is not None:
             # The scene's light through both gratings, and the elastomer's light through the
             # reference grating alone, whose carrier sits beside the upper one's.
-            carriers = self._carriers(upper, beat, low_sets) * self.radiance.astype(fringe.dtype)[None] + (
-                self.light_carrier * light.astype(fringe.dtype)[None]
-            )
-            fringe = jnp.concatenate([fringe, self.carrier_pass(gain.astype(fringe.dtype) * carriers)])
-        return FringeFields(fringe=fringe, brightness=brightness, reference_wavevector=self.reference_wavevector)
+            elastomer = self.light_carrier * light.astype(fringe.dtype)[None]
+            carriers = self._carriers(upper, beat, low_sets) * self.radiance.astype(fringe.dtype)[None] + elastomer
+            cast = gain.astype(fringe.dtype)
+            fringe = jnp.concatenate([fringe, self.carrier_pass(cast * carriers)])
+            light_fringe = jnp.concatenate([light_fringe, self.carrier_pass(cast * elastomer)])
+        return FringeFields(
+            fringe=fringe, brightness=brightness, reference_wavevector=self.reference_wavevector, light=light_fringe
+        )
 
     def _carriers(self, upper, beat, low_sets) -> Complex[Array, "sets h w"]:
         """The carriers' baseband before the radiance and the gain; the reference grating's
