@@ -172,9 +172,15 @@ def test_the_python_api_opens_a_camera_by_name_as_the_cli_does(cameras, monkeypa
     from moirejax.live import _run
 
     opened = []
-    monkeypatch.setattr(_run, "VideoSource", lambda spec, **kw: opened.append(spec) or spec)
-    assert _run.open_source("SN4711") == str(cv2.CAP_V4L2 + 2)
-    assert _run.open_source("0") == "0"
+
+    def capture(spec, **kwargs):
+        opened.append(spec)
+        return _run.CallableSource(lambda index: None)
+
+    monkeypatch.setattr(_run, "VideoSource", capture)
+    _run.open_source("SN4711")
+    _run.open_source("0")
+    assert opened == [str(cv2.CAP_V4L2 + 2), "0"]
     with pytest.raises(ValueError, match="Integrated Webcam"):
         _run.open_source("Integrated")
     with pytest.raises(FileNotFoundError):
