@@ -360,8 +360,10 @@ class Inverter(eqx.Module):
 
     def _predict_now(self, state: LoadState, reference_wavevector) -> FringeFields:
         # The constructor's predictions, compiled as one program: run op by op, each of the
-        # model's operations compiles on its own.
-        return _bands_at_state(self.device, self.demodulator, state, reference_wavevector, self.model_shape)
+        # model's operations compiles on its own. They stand for measured bands (the reference
+        # of a unit without one), so they carry no light share (`FringeFields.light`).
+        fields = _bands_at_state(self.device, self.demodulator, state, reference_wavevector, self.model_shape)
+        return eqx.tree_at(lambda f: f.light, fields, None, is_leaf=lambda x: x is None)
 
     def _predict(self, y) -> FringeFields:
         # Observed fields refer to the reference frame's wavevectors (`observe`), as the model does.
