@@ -126,7 +126,6 @@ def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian,
         jacobian=jacobian,
         change=r_zero - r_data,
         valid=converged,
-        light=jnp.ones((), dtype),
     )
     return estimate, track
 

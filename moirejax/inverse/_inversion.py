@@ -55,7 +55,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Real
+from jaxtyping import Array, Bool, Complex, Float, Real
 
 from .._conventions import NMM_PER_NM, WRENCH_SCALE
 from ..observe import (
@@ -108,6 +108,10 @@ _FRINGE_AGREEMENT = 0.5
 # fringes into the bands: on the renderer's frames of one load, 1% clipped read within 2%
 # of each axis' range, 3.4% within 7%, 7.3% within 20%, and 15% three and a half ranges off.
 _CLIPPED_SHARE = 0.05
+# The most contact light a frame may be explained with, in units of the device's (glow and
+# rim, `Inverter.contact_light_scale`): units scatter between none and a few times the
+# nominal; more than this is a load that the light would be made to stand in for.
+_LIGHT_SCALE_MAX = 8.0
 
 
 def model_grid_for(
@@ -209,6 +213,7 @@ class Inverter(eqx.Module):
     glow_per_newton: Float[Array, ""]
     unit_phase_noise: Float[Array, "families m n"]
     reference_noise: Float[Array, ""]
+    fitted_light: Bool[Array, ""]
     model_shape: tuple[int, int] = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
     rtol: float = eqx.field(static=True)
@@ -259,6 +264,7 @@ class Inverter(eqx.Module):
         self.atol = atol
         self.contact_threshold = contact_threshold
         self.brightness = bool(brightness)
+        self.fitted_light = jnp.asarray(False)
         self.chord_steps = chord_steps
         self.chord_tolerance = chord_tolerance
         sets = device.n_sets
@@ -416,22 +422,66 @@ class Inverter(eqx.Module):
         reference bands over the model's no-load bands (`model_reference`, by default those of
         this inverter's model; calibration passes those of the parameters it is trying),
         all but the elastomer's own light (`FringeFields.light`), which passes the
-        reference grating alone.
+        reference grating alone; after `phase_only(None)` that light is scaled to explain the
+        frame best ([`Inverter.contact_light_scale`][]).
         Layout: the fringe change along the predicted fringe phasor at every coarse-grid point
         (amplitude), across it (phase), then the brightness change, each with this inverter's
         weights ([`Inverter.phase_only`][] zeroes all but the phase).
         """
         if model_reference is None:
             model_reference = self.model_reference
-        ratio = complex_ratio(self.reference.fringe, model_reference.fringe)
-        if predicted.light is None:
-            fringe = predicted.fringe * ratio
-        else:
+        fringe = self._gratings_share(predicted, model_reference)
+        if predicted.light is not None:
             # The elastomer's light passes the reference grating alone: the unit's contrast
-            # of the gratings' product, which the ratio corrects, does not apply to it.
-            fringe = (predicted.fringe - predicted.light) * ratio + predicted.light
+            # of the gratings' product, which the reference correction scales by, does not
+            # apply to it.
+            scale = jnp.where(self.fitted_light, self._light_scale(observed, fringe, predicted.light), 1.0)
+            fringe = fringe + scale.astype(fringe.dtype) * predicted.light
         brightness = predicted.brightness - model_reference.brightness + self.reference.brightness
         return self._band_residual(observed.fringe - fringe, observed.brightness - brightness, fringe)
+
+    def contact_light_scale(
+        self, observed: FringeFields, predicted: FringeFields, model_reference: FringeFields | None = None
+    ) -> Float[Array, ""]:
+        """How many times the light the device says a contact scatters (glow and rim) best
+        explains the fringe phase of `observed` bands, given a prediction of them (its
+        `light` share at the device's light); within [0, 8]. [`Inverter.band_residual`][]
+        uses it on an inverter from `phase_only(None)`.
+
+        A unit's elastomer need not glow as its device says: it may not glow at all, or
+        glow several times more and wider. The light leaks into the fringe bands under the
+        contact, so the wrong amount of it moves the fitted wrench. The light enters the
+        bands linearly, so at a given load its best scale has a closed form: the
+        least-squares fit of the light's phase component (across the predicted fringes) to
+        the phase misfit of the rest of the prediction. A solve over the load sees the
+        light's best amount at every trial load, and the data Jacobian, taken through it,
+        gives the load's covariance with the light marginalised.
+        """
+        if predicted.light is None:
+            raise ValueError(
+                "`predicted` has no light share: pass bands from the model (Inverter.model), not a frame's"
+            )
+        gratings = self._gratings_share(predicted, model_reference)
+        return self._light_scale(observed, gratings, predicted.light)
+
+    def _gratings_share(self, predicted: FringeFields, model_reference: FringeFields | None):
+        # The prediction's fringes but the elastomer's light, corrected for the unit's fixed
+        # pattern by its reference bands over the model's.
+        if model_reference is None:
+            model_reference = self.model_reference
+        ratio = complex_ratio(self.reference.fringe, model_reference.fringe)
+        return predicted.fringe * ratio if predicted.light is None else (predicted.fringe - predicted.light) * ratio
+
+    def _light_scale(
+        self, observed: FringeFields, gratings: Complex[Array, "families m n"], light: Complex[Array, "families m n"]
+    ) -> Float[Array, ""]:
+        full = gratings + light
+        direction = jnp.conj(full) * jax.lax.rsqrt(full.real**2 + full.imag**2 + 1e-24).astype(full.dtype)
+        weight = self.fringe_weight.astype(full.dtype)
+        misfit = ((observed.fringe - gratings) * direction * weight).imag
+        response = (light * direction * weight).imag
+        scale = jnp.sum(misfit * response) / jnp.maximum(jnp.sum(response**2), jnp.finfo(misfit.dtype).tiny)
+        return jnp.clip(scale, 0.0, _LIGHT_SCALE_MAX)
 
     def _data_residuals(self, y, observed: FringeFields):
         return self.band_residual(observed, self._predict(y))
@@ -577,7 +627,6 @@ class Inverter(eqx.Module):
             jacobian=jnp.zeros((n, N_UNKNOWNS), dtype),
             change=jnp.zeros(n, dtype),
             valid=jnp.asarray(False),
-            light=jnp.ones((), dtype),
         )
 
     def _prepare(self, frame):
@@ -625,13 +674,14 @@ class Inverter(eqx.Module):
     def _data_jacobian(self, y, observed):
         return jax.jacfwd(self._data_residuals)(y, observed)
 
-    def phase_only(self, light: float | Float[Array, ""] = 1.0) -> "Inverter":
+    def phase_only(self, light: float | Float[Array, ""] | None = 1.0) -> "Inverter":
         """This inverter with a residual of the fringe phase alone (the weights of the
         brightness and of the fringes' amplitude, and their shares of the unit-noise draws,
         set to zero), and the light a contact scatters (glow and rim) scaled by `light` in
         the model: 1 for a unit that scatters it as the device says, 0 for one that does
-        not. The light leaks into the fringe bands, so a law the unit does not follow biases
-        the fringe fit too.
+        not, `None` for the scale that best explains each frame
+        ([`Inverter.contact_light_scale`][]). The light leaks into the fringe bands, so a
+        law the unit does not follow biases the fringe fit too.
 
         The amplitude is left out because photometry moves it: on frames of an independent
         renderer, the fringe amplitude at the true load differed from the model's by up to
@@ -648,6 +698,7 @@ class Inverter(eqx.Module):
                 i.noise_power,
                 i.model.mechanics.device.optics.glow_gain,
                 i.model.mechanics.device.optics.rim_gain,
+                i.fitted_light,
             ),
             self,
             (
@@ -655,22 +706,26 @@ class Inverter(eqx.Module):
                 jnp.zeros_like(self.amplitude_weight),
                 noise_residuals,
                 jnp.sum(noise_residuals**2) / noise_residuals.shape[0],
-                optics.glow_gain * light,
-                optics.rim_gain * light,
+                optics.glow_gain * (1.0 if light is None else light),
+                optics.rim_gain * (1.0 if light is None else light),
+                jnp.asarray(light is None),
             ),
         )
 
-    def _fit_for(self, light) -> "Inverter":
-        """The problem a solution is refined on: [`Inverter.phase_only`][] with the contact light
-        scaled by `light`, or this inverter itself when it fits the brightness."""
-        return self if self.brightness else self.phase_only(light)
+    @property
+    def _fit(self) -> "Inverter":
+        """The problem a solution is refined on: this inverter itself when it fits the
+        brightness, else [`Inverter.phase_only`][] with the contact light each load explains
+        best."""
+        return self if self.brightness else self.phase_only(None)
 
     def track(self, frame: Real[Array, "h w"], track: "Track") -> tuple[Estimate, "Track"]:
         """Invert one frame of a stream; pure and jit-able (see [`frame_tracker`][]).
 
         With a valid `track`, a few frozen-Jacobian Gauss–Newton iterations from the last
-        solution on the problem that solution was refined on (fringe phase, with the contact
-        light it chose; about three model evaluations), then the same iterations with a
+        solution on the problem cold solutions are refined on (the fringe phase, with the
+        contact light each load explains best; about three model evaluations), then the same
+        iterations with a
         fresh Jacobian. If neither converges, or without a valid track, the cold solve of
         [`Inverter.solve`][] from the best of the last solution, the iterations' end and
         the cold guess (its first two starts only, so that a stream does not stall; see
@@ -682,9 +737,8 @@ class Inverter(eqx.Module):
         last = track.state.vector()
         usable = track.valid & jnp.all(jnp.isfinite(last))
         warm = jnp.where(usable, last, cold)
-        fit = self._fit_for(track.light)
-        # The zero-load residual weighs the bands alone, so the contact light a solution is
-        # refined with does not change it: one for the whole frame.
+        fit = self._fit
+        # The zero-load residual has no contact light: one for the whole frame.
         r_zero = fit._zero_residuals(observed)
         # The last frame's prediction at `warm` gives its residual here without a model run.
         r_warm = jax.lax.cond(
@@ -696,7 +750,7 @@ class Inverter(eqx.Module):
         accepted = usable & accepted
 
         def fast(_):
-            return y_chord, r_chord, j_chord, chord_steps, optx.RESULTS.successful, pending, track.light
+            return y_chord, r_chord, j_chord, chord_steps, optx.RESULTS.successful, pending
 
         def slow(_):
             # Second tier: the same iterations with a Jacobian evaluated afresh at the best
@@ -712,7 +766,7 @@ class Inverter(eqx.Module):
 
             def refreshed(_):
                 steps = chord_steps + fresh_steps
-                return y_fresh, r_fresh, j_fresh, steps, optx.RESULTS.successful, fresh_pending, track.light
+                return y_fresh, r_fresh, j_fresh, steps, optx.RESULTS.successful, fresh_pending
 
             def cold_solve(_):
                 # The start is chosen on the full residual, as the cold solve's first stage
@@ -720,17 +774,16 @@ class Inverter(eqx.Module):
                 # unrelated load, iterations on the phase alone from the last solution end
                 # in its basin, and the brightness points to the new contact.
                 start, _ = best_start([cold, warm], [self.residuals(cold, args), self.residuals(warm, args)])
-                y, r, jacobian, steps, result, light = solve_cold(self, start, args, more_starts=False)
-                return y, r, jacobian, steps, result, jnp.zeros_like(y), light
+                y, r, jacobian, steps, result = solve_cold(self, start, args, more_starts=False)
+                return y, r, jacobian, steps, result, jnp.zeros_like(y)
 
             return jax.lax.cond(usable & fresh_ok, refreshed, cold_solve, None)
 
-        y, r, jacobian, steps, result, pending, light = jax.lax.cond(accepted, fast, slow, None)
-        fit = self._fit_for(light)
+        y, r, jacobian, steps, result, pending = jax.lax.cond(accepted, fast, slow, None)
         estimate, next_track = finish(
             fit, screen, observed, r_zero, noise, y, r, jacobian, steps, result, warm, pending
         )
-        return estimate, eqx.tree_at(lambda t: t.light, next_track, light)
+        return estimate, next_track
 
     def solve(self, frame: Real[Array, "h w"], init: LoadState | None = None) -> Estimate:
         """Invert one frame with Levenberg–Marquardt. Pure and jit-able; see [`invert`][].
@@ -744,9 +797,10 @@ class Inverter(eqx.Module):
 
         Without `brightness`, the solution of the full residual (fringe fields and
         brightness), whose glow places a cold start in the right basin on a unit that glows,
-        is refined on the fringe phase alone twice: with the contact light the device
-        describes, and with none. The better phase fit is the estimate, so that neither the
-        unit's brightness nor its fringes' amplitude, which photometry moves, biases it.
+        is refined on the fringe phase alone, with as much of the contact light the device
+        describes as best explains the frame at each load ([`Inverter.contact_light_scale`][]):
+        neither the unit's brightness, nor its fringes' amplitude, which photometry moves,
+        nor how much its elastomer glows biases the estimate.
         """
         screen, observed, r_zero, noise = self._prepare(frame)
         args = (observed, noise)
@@ -771,19 +825,18 @@ class Inverter(eqx.Module):
         def skipped(_):
             # No load to find: the unknowns stay at zero load, where the Jacobian still gives
             # the interval of a load the noise could hide.
-            fit = self._fit_for(1.0)
+            fit = self._fit
             y = LoadState.from_vector(y0).unloaded().vector()
             steps = jnp.zeros((), jnp.int32)
-            light = jnp.ones((), y.dtype)
-            return y, fit.residuals(y, args), fit._data_jacobian(y, observed), steps, optx.RESULTS.successful, light
+            return y, fit.residuals(y, args), fit._data_jacobian(y, observed), steps, optx.RESULTS.successful
 
         # A frame without contact, or one the screen refuses, is not solved: its status sets
         # the wrench (zero, or NaN) whatever a solver would return.
         needed = (
             screen.finite & ~screen.refused & (self._phase_change_statistic(observed, screen) > self.contact_threshold)
         )
-        y, r, jacobian, steps, result, light = jax.lax.cond(needed, solved, skipped, None)
-        fit = self._fit_for(light)
+        y, r, jacobian, steps, result = jax.lax.cond(needed, solved, skipped, None)
+        fit = self._fit
         return finish(fit, screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, y0)[0]
 
     def chord_batch(self, frames: Real[Array, "b h w"], track: "Track") -> tuple[Estimate, Bool[Array, " b"], "Track"]:
@@ -794,7 +847,7 @@ class Inverter(eqx.Module):
         and each frame's track (a leading batch axis) to continue a stream from.
         """
 
-        fit = self._fit_for(track.light)
+        fit = self._fit
 
         def one(frame):
             screen, observed, _, noise = self._prepare(frame)
@@ -806,7 +859,6 @@ class Inverter(eqx.Module):
             estimate, frame_track = finish(
                 fit, screen, observed, r_zero, noise, y, r, jacobian, steps, optx.RESULTS.successful, y, pending
             )
-            frame_track = eqx.tree_at(lambda t: t.light, frame_track, track.light)
             # A frame the chord settles is done whatever its verdict; a frame that needs no
             # solution (bad, non-finite) is done too.
             status = estimate.status

@@ -191,7 +191,7 @@ def _chord_batch(inverter: Inverter, frames, track: Track):
 def _relinearise(inverter: Inverter, track: Track) -> Track:
     # The data Jacobian depends on the frame only through the reference wavevectors, which
     # every frame shares with the reference.
-    jacobian = inverter._fit_for(track.light)._data_jacobian(track.state.vector(), inverter.reference)
+    jacobian = inverter._fit._data_jacobian(track.state.vector(), inverter.reference)
     return eqx.tree_at(lambda t: t.jacobian, track, jnp.where(track.valid, jacobian, track.jacobian))
 
 

@@ -8,6 +8,7 @@ the solvers' coordinates of [`LoadState.vector`][moirejax.LoadState.vector].
 
 from typing import TYPE_CHECKING
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -180,26 +181,30 @@ def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array,
     """Levenberg–Marquardt on the full residual from `y0` (the brightness places a cold
     start in the right basin on a unit that glows), then, unless the inverter fits the
     brightness, two refinements on the fringe phase alone: with the contact light the
-    device describes, and with none. Returns the better refinement as
-    `(y, r, jacobian, steps, result, light)`, `r` and `jacobian` those of
-    `problem._fit_for(light)`."""
+    device describes, then from there with the light each load explains best
+    ([`Inverter.contact_light_scale`][moirejax.Inverter.contact_light_scale]). Returns
+    `(y, r, jacobian, steps, result)`, `r` and `jacobian` those of `problem._fit`.
+
+    Refining with the fitted light straight from the full residual's solution can end in
+    a wrong basin: on a line-grating unit whose fringes see the normal force weakly, the
+    fit let the normal force fall to nothing while the light rose to its bound (0.84 N read
+    as 0.01 N, at four times the cost of the right solution). From the fixed light's
+    solution, which is in the right basin, the fitted light only lowers the cost.
+    """
     y, r, jacobian, steps, result = levenberg_marquardt(problem, y0, args, more_starts=more_starts)
     if problem.brightness:
-        return y, r, jacobian, steps, result, jnp.ones((), y.dtype)
-    zero_cost = jnp.sum(problem.phase_only(1.0)._zero_residuals(args[0]) ** 2)
+        return y, r, jacobian, steps, result
+    fit = problem._fit
 
-    def refine(more, light):
-        # The device's light first; the second refinement (no light) tries further
-        # starts only when the first leaves the frame poorly explained: a unit that
-        # glows as the device says is done in a few steps, one that does not needs them.
-        y_, r_, jacobian_, steps_, result_ = levenberg_marquardt(problem.phase_only(light), y, args, more_starts=more)
-        poor = jnp.sum(r_[:-N_PRIORS] ** 2) > _UNEXPLAINED * zero_cost
-        return more_starts & poor, (y_, r_, jacobian_, steps_, result_)
+    def refine(carry, fitted):
+        y, more = carry
+        stage = eqx.tree_at(lambda i: i.fitted_light, fit, fitted)
+        solution = levenberg_marquardt(stage, y, args, more_starts=more)
+        return (solution[0], jnp.asarray(more_starts)), solution
 
-    # One traced solver run twice (light as the device says, then none), not two copies.
-    lights = jnp.asarray([1.0, 0.0], y.dtype)
-    _, (ys, rs, jacobians, refine_steps, results) = jax.lax.scan(refine, jnp.asarray(False), lights)
-    costs = jnp.sum(rs[:, :-N_PRIORS] ** 2, axis=1)
-    best = jnp.argmin(jnp.where(jnp.isfinite(costs), costs, jnp.inf))
-    y, r, jacobian, result = jax.tree_util.tree_map(lambda a: a[best], (ys, rs, jacobians, results))
-    return y, r, jacobian, steps + jnp.sum(refine_steps).astype(steps.dtype), result, lights[best]
+    # One traced solver run twice (the device's light, then the fitted light), not two copies.
+    _, (ys, rs, jacobians, refine_steps, results) = jax.lax.scan(
+        refine, (y, jnp.asarray(False)), jnp.asarray([False, True])
+    )
+    last = jax.tree_util.tree_map(lambda a: a[-1], (ys, rs, jacobians, results))
+    return *last[:3], steps + jnp.sum(refine_steps).astype(steps.dtype), last[3]

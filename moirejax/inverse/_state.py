@@ -181,11 +181,9 @@ class Track(eqx.Module):
     there (against the solution's [`LoadState.vector`][moirejax.LoadState.vector]), and the
     model's predicted change of the data from zero load there (so the next frame's residual
     at the last solution costs no model run); `valid` is false before the first converged
-    contact; `light` is the scale of the contact light the solution was refined with (see
-    [`Inverter.solve`][]). Make the first one with [`Inverter.cold_track`][]."""
+    contact. Make the first one with [`Inverter.cold_track`][]."""
 
     state: LoadState
     jacobian: Float[Array, "n 10"]
     change: Float[Array, " n"]
     valid: Bool[Array, ""]
-    light: Float[Array, ""]

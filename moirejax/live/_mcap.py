@@ -47,7 +47,7 @@ from .._fileio import DataError
 from ..data import Dataset
 from ..inverse import check_source
 from ..physics import Contact, Device, surface_grid, surface_tractions
-from ._records import RecordStream
+from ._records import LOAD_STATUSES, RecordStream
 from ._run import PRESSURE_SHAPE
 from ._sinks import _CountingSink, make_record, Sink, WrenchRecord
 from ._types import Real
@@ -139,7 +139,7 @@ def _as_uint8(image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
-WRENCH_STATUSES = ("converged", "max_steps", "no_contact")
+WRENCH_STATUSES = (*LOAD_STATUSES, "no_contact")
 """The statuses whose wrench an MCAP file publishes as a WrenchStamped: load estimates and
 the zero of an untouched frame. The others (no wrench, or one the inversion does not
 believe) are records with their status only."""

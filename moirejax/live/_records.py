@@ -21,8 +21,9 @@ from ._types import Real
 
 
 # Statuses whose wrench is an estimate of the load (others carry no wrench, or one that the
-# inversion itself flags as unexplained).
-_WRENCH_STATUSES = frozenset({"converged", "max_steps"})
+# inversion itself flags as unexplained); an MCAP file also publishes the zero of no contact.
+LOAD_STATUSES = ("converged", "max_steps")
+_WRENCH_STATUSES = frozenset(LOAD_STATUSES)
 # Statuses of a frame the inversion found touched, whether or not its wrench is believed.
 _TOUCHED_STATUSES = _WRENCH_STATUSES | {"unexplained"}
 
