@@ -191,6 +191,9 @@ def test_no_contact_frame_gives_zero_wrench(mid, inverter):
     estimate = invert(inverter, frame)
     assert Status(int(estimate.status)) == Status.NO_CONTACT
     assert np.all(np.asarray(estimate.wrench) == 0)
+    # The interval of a load the noise could hide, taken through the fitted contact light,
+    # which is zero without a contact.
+    assert np.all(np.isfinite(np.asarray(estimate.sigma))) and np.all(np.asarray(estimate.sigma) > 0)
 
 
 @pytest.mark.parametrize(

@@ -480,7 +480,12 @@ class Inverter(eqx.Module):
         weight = self.fringe_weight.astype(full.dtype)
         misfit = ((observed.fringe - gratings) * direction * weight).imag
         response = (light * direction * weight).imag
-        scale = jnp.sum(misfit * response) / jnp.maximum(jnp.sum(response**2), jnp.finfo(misfit.dtype).tiny)
+        power = jnp.sum(response**2)
+        # Without a contact there is no light to scale (nor a derivative of its scale): the
+        # scale is then zero, and the division is kept off that case so that its derivative
+        # stays finite.
+        lit = power > 1e-12 * jnp.sum(misfit**2 + jnp.abs(full * weight) ** 2)
+        scale = jnp.where(lit, jnp.sum(misfit * response) / jnp.where(lit, power, 1.0), 0.0)
         return jnp.clip(scale, 0.0, _LIGHT_SCALE_MAX)
 
     def _data_residuals(self, y, observed: FringeFields):
