@@ -695,6 +695,7 @@ class Inverter(eqx.Module):
         size = self.fringe_weight.size
         noise_residuals = self.noise_residuals.at[:, :size].set(0.0).at[:, 2 * size :].set(0.0)
         optics = self.model.mechanics.device.optics
+        scale = 1.0 if light is None else light
         return eqx.tree_at(
             lambda i: (
                 i.brightness_weight,
@@ -711,8 +712,8 @@ class Inverter(eqx.Module):
                 jnp.zeros_like(self.amplitude_weight),
                 noise_residuals,
                 jnp.sum(noise_residuals**2) / noise_residuals.shape[0],
-                optics.glow_gain * (1.0 if light is None else light),
-                optics.rim_gain * (1.0 if light is None else light),
+                optics.glow_gain * scale,
+                optics.rim_gain * scale,
                 jnp.asarray(light is None),
             ),
         )

@@ -23,9 +23,8 @@ from ._types import Real
 # Statuses whose wrench is an estimate of the load (others carry no wrench, or one that the
 # inversion itself flags as unexplained); an MCAP file also publishes the zero of no contact.
 LOAD_STATUSES = ("converged", "max_steps")
-_WRENCH_STATUSES = frozenset(LOAD_STATUSES)
 # Statuses of a frame the inversion found touched, whether or not its wrench is believed.
-_TOUCHED_STATUSES = _WRENCH_STATUSES | {"unexplained"}
+_TOUCHED_STATUSES = (*LOAD_STATUSES, "unexplained")
 
 
 class WrenchFilter:
@@ -130,7 +129,7 @@ class RecordStream:
         in_contact = record.mode == "tactile" and record.status in _TOUCHED_STATUSES
         if not in_contact and self.filter is not None:
             self.filter.reset()
-        if not in_contact or wrench is None or record.status not in _WRENCH_STATUSES:
+        if not in_contact or wrench is None or record.status not in LOAD_STATUSES:
             # Touched but not believed (unexplained): the record says so, and its wrench
             # is neither corrected nor filtered.
             return dataclasses.replace(record, **fields, in_contact=in_contact)
