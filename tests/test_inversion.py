@@ -11,6 +11,7 @@ import pytest
 import moirejax as mj
 from moirejax._conventions import WRENCH_SCALE
 from moirejax.inverse import invert, Inverter, LoadState, Status
+from moirejax.inverse._estimate import _off_the_surface
 from moirejax.inverse._inversion import _median
 from moirejax.physics._contact import Contact
 from moirejax.physics._render import render_frame
@@ -194,6 +195,29 @@ def test_no_contact_frame_gives_zero_wrench(mid, inverter):
     # The interval of a load the noise could hide, taken through the fitted contact light,
     # which is zero without a contact.
     assert np.all(np.isfinite(np.asarray(estimate.sigma))) and np.all(np.asarray(estimate.sigma) > 0)
+
+
+@pytest.mark.parametrize(
+    "centre_mm, fz, sigma_scale, off",
+    [
+        ((0.0, 0.0), 1.0, 1e-3, False),
+        ((12.0, -10.0), 1.0, 1e-3, False),  # on the surface, though off the centre
+        ((30.0, 0.0), 1.0, 1e-3, True),  # beyond the surface's half width (16 mm image, magnified)
+        ((0.0, 25.0), 0.5, 1e-3, True),
+        ((30.0, 0.0), 1.0, 0.5, False),  # as far off, but within three standard errors
+        ((None, 0.006), 0.0, 1e-3, True),  # a moment without the normal force that could carry it
+    ],
+)
+def test_a_centre_of_pressure_off_the_imaged_surface_is_not_a_contact(mid, centre_mm, fz, sigma_scale, off):
+    """A pushing pressure's centre, (-Ty/Fz, Tx/Fz), lies on the surface it pushes on."""
+    if centre_mm[0] is None:
+        tx, ty = centre_mm[1], 0.0
+    else:
+        x, y = (c * 1e-3 for c in centre_mm)
+        tx, ty = y * fz, -x * fz
+    wrench = jnp.asarray([0.1, -0.05, fz, tx, ty, 0.001])
+    covariance = jnp.diag((sigma_scale * jnp.asarray(WRENCH_SCALE)) ** 2)
+    assert bool(_off_the_surface(mid, wrench, covariance)) is off
 
 
 @pytest.mark.parametrize(
