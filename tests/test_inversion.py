@@ -198,26 +198,39 @@ def test_no_contact_frame_gives_zero_wrench(mid, inverter):
 
 
 @pytest.mark.parametrize(
-    "centre_mm, fz, sigma_scale, off",
+    "x_mm, y_mm, fz, sigma_scale, off",
     [
-        ((0.0, 0.0), 1.0, 1e-3, False),
-        ((12.0, -10.0), 1.0, 1e-3, False),  # on the surface, though off the centre
-        ((30.0, 0.0), 1.0, 1e-3, True),  # beyond the surface's half width (16 mm image, magnified)
-        ((0.0, 25.0), 0.5, 1e-3, True),
-        ((30.0, 0.0), 1.0, 0.5, False),  # as far off, but within three standard errors
-        ((None, 0.006), 0.0, 1e-3, True),  # a moment without the normal force that could carry it
+        (0.0, 0.0, 1.0, 1e-3, False),
+        (12.0, -10.0, 1.0, 1e-3, False),  # off the centre, on the surface
+        (18.0, 0.0, 1.0, 1e-3, False),  # beyond the image's 16 mm, within the surface's 20 (magnified)
+        (0.0, -18.0, 0.5, 1e-3, False),
+        (22.0, 0.0, 1.0, 1e-3, True),
+        (0.0, 25.0, 0.5, 1e-3, True),
+        (30.0, 0.0, 1.0, 0.5, False),  # as far off, but within three standard errors
+        (0.0, 0.0, -0.3, 1e-3, True),  # a pull: no pushing pressure gives it
+        (0.0, 0.0, -0.3, 0.5, False),  # a pull its error cannot tell from a push
     ],
 )
-def test_a_centre_of_pressure_off_the_imaged_surface_is_not_a_contact(mid, centre_mm, fz, sigma_scale, off):
-    """A pushing pressure's centre, (-Ty/Fz, Tx/Fz), lies on the surface it pushes on."""
-    if centre_mm[0] is None:
-        tx, ty = centre_mm[1], 0.0
-    else:
-        x, y = (c * 1e-3 for c in centre_mm)
-        tx, ty = y * fz, -x * fz
-    wrench = jnp.asarray([0.1, -0.05, fz, tx, ty, 0.001])
+def test_a_centre_of_pressure_off_the_imaged_surface_is_not_a_contact(mid, x_mm, y_mm, fz, sigma_scale, off):
+    """A pushing pressure's centre, (-Ty/Fz, Tx/Fz), lies on the surface it pushes on: the
+    image's 32 mm field magnified by (Z + a)/Z = 1.25 on Mid."""
+    x, y = x_mm * 1e-3, y_mm * 1e-3
+    wrench = jnp.asarray([0.1, -0.05, fz, y * fz, -x * fz, 0.001])
     covariance = jnp.diag((sigma_scale * jnp.asarray(WRENCH_SCALE)) ** 2)
     assert bool(_off_the_surface(mid, wrench, covariance)) is off
+
+
+def test_the_surface_test_reads_the_moment_and_force_errors_together(mid):
+    """The excess |Ty| - Fz w/2 has the error of the difference: a moment and a force that err
+    together (positively correlated, as a centre of pressure known better than the load)
+    leave it small, and the same errors uncorrelated leave it larger."""
+    fz, x = 1.0, 21e-3  # 1 mm off the 20 mm half width
+    wrench = jnp.asarray([0.0, 0.0, fz, 0.0, x * fz, 0.0])
+    sd_ty, sd_fz = 4e-4, 0.02
+    for correlation, off in ((0.0, False), (0.999, True)):
+        covariance = jnp.diag(jnp.asarray([1e-6, 1e-6, sd_fz**2, 1e-10, sd_ty**2, 1e-10]))
+        covariance = covariance.at[2, 4].set(correlation * sd_ty * sd_fz).at[4, 2].set(correlation * sd_ty * sd_fz)
+        assert bool(_off_the_surface(mid, wrench, covariance)) is off
 
 
 @pytest.mark.parametrize(

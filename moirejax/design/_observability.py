@@ -130,7 +130,7 @@ def _fringe_response(device: Device, wrench: Float[Array, "6"], contact: Contact
     d_parallax = at_centre(surface_phase_shift(device, jnp.stack([zero, zero, w]), grid.X, grid.Y))
     d_u = at_centre(state.displacement[:2])  # [component, d/dX or d/dY]
     # The reference plane sees the surface demagnified by Z/(Z + a): gradients grow by (Z + a)/Z.
-    magnification = (device.Z + device.a) / device.Z
+    magnification = device.surface_magnification
     return _FringeResponse(
         phase=surface_phase_shift(device, state.displacement, grid.X, grid.Y),
         rotation=0.5 * (d_u[1, 0] - d_u[0, 1]),

@@ -24,6 +24,9 @@ _UNEXPLAINED_SHARE = 0.5
 # not a load the model describes either: a foreign scene, another unit, a moved camera or an
 # occlusion is "explained" by an absurd load as readily as by a small one.
 _IMPLAUSIBLE_RANGES = 10.0
+# How many standard errors a fit's centre of pressure may lie off the imaged contact surface
+# (`_off_the_surface`) before the load is one no contact in view applies.
+_SURFACE_SIGMAS = 3.0
 # Side (coarse-grid cells) of the tiles whose disagreement measures the model error in the
 # covariance: wider than the demodulated noise's correlation, so that tiles are independent
 # under noise alone, and small enough that a frame has dozens of them.
@@ -134,30 +137,30 @@ def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian,
 
 def _off_the_surface(device, wrench, covariance):
     r"""Whether a wrench's centre of pressure lies off the contact surface the camera sees,
-    beyond three standard errors.
+    by more than `_SURFACE_SIGMAS` standard errors.
 
     A contact pushes (pressure is not negative) and its shear acts in the surface, whose
     moments about a point of that surface are zero; so the centre of pressure,
-    $(-T_y/F_z,\ T_x/F_z)$, lies inside the contact region and on the imaged surface:
-    $|T_x| \le F_z h/2$ and $|T_y| \le F_z w/2$ for a surface $w$ by $h$. A fit that breaks
-    that by more than three standard errors of $|T| - F_z h/2$ has explained the frame with
-    a load no contact applies (on a frame of a natural scene seen through the sensor: Ty of
-    -0.027 N·m with 0.76 N, a centre of pressure 35 mm off the centre of a surface 40 mm
-    wide).
+    $(-T_y/F_z,\ T_x/F_z)$, lies inside the contact region, on the imaged surface:
+    $|T_x| \le F_z h/2$ and $|T_y| \le F_z w/2$ for a surface $w$ wide and $h$ high. The
+    excess $|T_x| - F_z h/2$ (and $|T_y| - F_z w/2$) is compared with its standard error
+    from the wrench's covariance. Two cases fall under it without being named so: a pull
+    ($F_z$ negative beyond its error), which a pushing pressure cannot give, and a contact
+    mostly outside the camera's view, which the model does not describe either. A fit that
+    needs such a load has explained the frame with a load no contact in view applies (on a
+    frame of a natural scene seen through the sensor: Ty of -0.027 N·m with 0.76 N, a centre
+    of pressure 35 mm off the centre of a surface 40 mm wide).
     """
-    magnification = (device.Z + device.a) / device.Z
-    half_height = 0.5e-3 * device.height / device.px_per_mm * magnification
-    half_width = 0.5e-3 * device.width / device.px_per_mm * magnification
+    half_height = 0.5e-3 * device.height / device.px_per_mm * device.surface_magnification
+    half_width = 0.5e-3 * device.width / device.px_per_mm * device.surface_magnification
 
     def beyond(moment, half):
-        # |T| - half * Fz, and its standard error through the wrench's covariance.
         sign = jnp.sign(wrench[moment])
         excess = sign * wrench[moment] - half * wrench[2]
         variance = covariance[moment, moment] + half**2 * covariance[2, 2] - 2 * sign * half * covariance[moment, 2]
-        return excess > 3.0 * jnp.sqrt(jnp.clip(variance, 0.0, None))
+        return excess > _SURFACE_SIGMAS * jnp.sqrt(jnp.clip(variance, 0.0, None))
 
-    beyond_rows, beyond_cols = beyond(3, half_height), beyond(4, half_width)
-    return beyond_rows | beyond_cols
+    return beyond(3, half_height) | beyond(4, half_width)
 
 
 def _tile_index(fringe_shape: tuple[int, int, int], size: int) -> np.ndarray:

@@ -133,7 +133,7 @@ def model_grid_for(
     period = float(np.min(2 * np.pi / np.linalg.norm(np.asarray(device.moire_wavevectors()), axis=-1)))
     size_mm = max(device.height, device.width) / float(device.px_per_mm)
     # The mechanics grid spans the contact surface, magnified by (Z + a)/Z over the image.
-    surface_mm = size_mm * float((device.Z + device.a) / device.Z)
+    surface_mm = size_mm * float(device.surface_magnification)
     needed = max(samples_per_period * size_mm / period, samples_per_radius * surface_mm / smallest_radius)
     return grid_shape((device.height, device.width), 16 * math.ceil(needed / 16))
 
@@ -620,7 +620,7 @@ class Inverter(eqx.Module):
         window = jnp.exp(-0.5 * ((x - x.ravel()[peak]) ** 2 + (y - y.ravel()[peak]) ** 2) / 3.0**2)
         local = weight * window
         total = jnp.sum(local) + 1e-12
-        to_surface = (self.device.Z + self.device.a) / self.device.Z
+        to_surface = self.device.surface_magnification
         return jnp.sum(local * x) / total * to_surface, jnp.sum(local * y) / total * to_surface
 
     def cold_track(self) -> "Track":

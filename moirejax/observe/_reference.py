@@ -47,7 +47,7 @@ def match_reference_geometry(device: Device, frame: np.ndarray) -> Device:
     measured = measure_moire_wavevectors(frame, device)
     k2 = np.asarray(device.reference_wavevectors())
     k1 = measured + k2
-    magnification = float((device.Z + device.a) / device.Z)
+    magnification = float(device.surface_magnification)
     pitch = float(np.mean(2 * np.pi / np.hypot(k1[:, 0], k1[:, 1]))) * magnification
     angles = np.arctan2(k1[:, 1], k1[:, 0])
     if device.n_sets == 2:

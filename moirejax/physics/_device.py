@@ -178,6 +178,13 @@ class Device(eqx.Module):
         """Rectified field (height, width) in mm in the reference plane (needs concrete values)."""
         return self.height / float(self.px_per_mm), self.width / float(self.px_per_mm)
 
+    @property
+    def surface_magnification(self) -> Float[Array, ""]:
+        """$(Z + a)/Z$: how much larger a length on the contact surface is than its image in
+        the reference plane, whose field the rectified frame shows. The contact surface lies
+        $a$ farther from the camera."""
+        return (self.Z + self.a) / self.Z
+
     def set_angles(self) -> tuple[Float[Array, " sets"], Float[Array, " sets"]]:
         """Wavevector direction of each line set of the upper and reference grating."""
         if self.layout == "lines":

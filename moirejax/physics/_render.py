@@ -106,7 +106,7 @@ def upper_grating_phase(
     `displacement` is sampled at the points (x, y), which must form a smooth grid.
     """
     ux, uy, w = displacement
-    magnification = (device.Z + device.a) / device.Z
+    magnification = device.surface_magnification
     shrink = 1 - w / (device.Z + device.a)
     material_x, material_y = _material_offset(ux, uy, x * magnification, y * magnification)
     X = x * magnification * shrink - material_x
