@@ -193,11 +193,11 @@ def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array,
 
     The six further starts of a poorly explained frame run in the last refinement, whose
     answer is the estimate, not in the first solve: on a unit the model does not describe
-    exactly the full residual (fringe amplitude and brightness too) leaves every frame
-    poorly explained (all 40 loads of the independent renderer's set), so its further
-    starts ran on every frame, cost 40% of the time (4.9 s against 2.9 s a frame, median)
-    and moved no estimate there by more than 0.02% of its range. When neither of the first solve's
-    two starts converges, the six run there too.
+    exactly, the full residual (fringe amplitude and brightness too) leaves every frame
+    poorly explained (all 40 loads of the independent renderer's set), so the first
+    solve's further starts ran on every frame, for a large share of its cost, and moved no
+    estimate there by more than 0.02% of its range. When neither of the first solve's two
+    starts converges, the six run there too.
 
     Refining with the fitted light straight from the full residual's solution can end in
     a wrong basin: on a line-grating unit whose fringes see the normal force weakly, the
