@@ -2,6 +2,7 @@
 
     python benchmarks/peer_frames.py --data DIR [--json]
     python benchmarks/peer_frames.py --render 200 --seed 3 [--json]
+    python benchmarks/peer_frames.py --data DIR --calibrate 200 [--calibration-seed 11] [--json]
 
 `--data` reads a folder written by the peer renderer (`frames/*.png`, `wrench.csv` with a
 `contact` column); `--render N` runs the renderer first, when `../shared/peer/raycast_sensor.py`
@@ -9,6 +10,12 @@ sits beside the checkout. Every frame is inverted cold with the nominal Mid desi
 renderer describes it (line gratings, duty 0.5) and no calibration; the no-contact frames
 are the reference. Prints R² per axis over the loaded frames, how many were called "no
 contact", the status counts, the 95% interval coverage, and the time per frame.
+
+With `--calibrate N` the renderer also draws N other mixed loads (`--calibration-seed`), `calibrate`
+fits the unit on them (the default `unit` recipe) and `evaluate` scores the fit on the
+loads of `--data`: the report gains the held-out R² and coverage with and without the
+residual head, the pixel baseline cross-validated on the calibration frames, and the
+calibration's and the evaluation's wall time.
 """
 
 import argparse
@@ -41,6 +48,39 @@ def read_peer(folder: Path):
     return frames, wrench, contact
 
 
+def render_peer(n: int, seed: int) -> Path:
+    folder = Path(tempfile.mkdtemp(prefix="peer-"))
+    subprocess.run([sys.executable, str(PEER), str(folder), "--n", str(n), "--seed", str(seed)], check=True)
+    return folder
+
+
+def calibrated(device: mj.Device, test: Path, n: int, seed: int) -> dict:
+    """Calibrate on `n` other loads of the renderer and score the fit on the loads in `test`."""
+    work = Path(tempfile.mkdtemp(prefix="peer-calibration-"))
+    train = render_peer(n, seed)
+    mj.save_device(work / "nominal.json", device)
+    for name, folder in (("train", train), ("test", test)):
+        mj.import_recording(
+            folder / "frames", folder / "wrench.csv", work / "nominal.json", work / name, progress=False
+        )
+    start = time.perf_counter()
+    fit = mj.calibrate(work / "nominal.json", work / "train", work / "fit.json", max_frames=None, progress=False)
+    calibrate_s = time.perf_counter() - start
+    start = time.perf_counter()
+    held_out = mj.evaluate(work / "fit.json", work / "test", work / "evaluation", progress=False)
+    physics = held_out.get("physics_only", held_out)
+    return {
+        "calibration_frames": n,
+        "held_out_r2": held_out["r2"],
+        "held_out_coverage95": held_out["coverage95"],
+        "held_out_r2_physics_only": physics["r2"],
+        "pixel_baseline_r2_crossvalidated": fit["baselines"],
+        "calibrate_s": round(calibrate_s, 1),
+        "evaluate_s": round(time.perf_counter() - start, 1),
+        "peak_memory_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+    }
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, help="a folder written by the peer renderer")
@@ -50,14 +90,17 @@ def main():
     parser.add_argument(
         "--per-frame", type=Path, help="also write each frame's truth, estimate, sigma and status (CSV)"
     )
+    parser.add_argument(
+        "--calibrate", type=int, default=0, help="also calibrate on this many other loads of the renderer"
+    )
+    parser.add_argument("--calibration-seed", type=int, default=11, help="seed of the calibration loads")
     args = parser.parse_args()
+    if args.calibrate and not PEER.exists():
+        parser.error(f"--calibrate renders its loads with the peer renderer, expected at {PEER}")
     if args.data is None:
         if not args.render or not PEER.exists():
             parser.error(f"give --data DIR, or --render N with the peer renderer at {PEER}")
-        args.data = Path(tempfile.mkdtemp(prefix="peer-"))
-        subprocess.run(
-            [sys.executable, str(PEER), str(args.data), "--n", str(args.render), "--seed", str(args.seed)], check=True
-        )
+        args.data = render_peer(args.render, args.seed)
     frames, truth, contact = read_peer(args.data)
     device = mj.preset("mid", layout="lines", duty1=0.5, duty2=0.5)
     start = time.perf_counter()
@@ -94,6 +137,8 @@ def main():
         "compile_s": compile_s,
         "peak_memory_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
     }
+    if args.calibrate:
+        report["calibrated"] = calibrated(device, args.data, args.calibrate, args.calibration_seed)
     if args.per_frame:
         with open(args.per_frame, "w", newline="") as f:
             out = csv.writer(f)
