@@ -11,9 +11,14 @@ least-squares problems, each solved with optimistix:
    inversion reads the load from, and the one a unit's photometry (contrast, defocus,
    lighting) cannot move;
 2. the photometric parameters (`optics.*`: gains, glow, rim, defocus), the others held,
-   on the whole residual (fringe amplitude and brightness too);
+   on the fringe phase too: the inversion reads the load from it, and the photometry
+   reaches it only through the share of a contact's light in the fringe bands. Fitted to
+   the fringe amplitude and brightness as well, the photometry of a unit the model does
+   not describe exactly took whatever values explained those best, however far from the
+   unit's (an independent renderer's unit: 27 times the nominal gain and 5 times its
+   defocus), and the wrench read from the phase through them was lost;
 3. the contact centre and radius of every frame, with the parameters fixed, on the fringe
-   phase (a vmapped 3-unknown solve; the exposure is held at its start).
+   phase (a 3-unknown solve, frame after frame; the exposure is held at its start).
 
 Parameters that must stay positive are fitted in log space. A recipe may put a Gaussian
 prior on a parameter around its starting value; its residual is scaled by the data's own
@@ -171,8 +176,7 @@ def latents_from_wrench(wrench: np.ndarray, dtype=None) -> LoadState:
 
 def _photometric(name: str) -> bool:
     """Whether a device field is photometric (of the optics: gains, glow, rim, defocus), which
-    calibration fits to the fringe amplitude and brightness, rather than mechanical or
-    geometric, which it fits to the fringe phase alone."""
+    calibration fits after the mechanical and geometric ones, with those held."""
     return name.startswith("optics.")
 
 
@@ -262,7 +266,10 @@ def _latent_solve(problem: _Problem, theta, latents: LoadState, observed, steps:
         sol = optx.least_squares(residuals, solver, contact_of(state), max_steps=steps, throw=False)
         return eqx.tree_at(contact_of, state, sol.value)
 
-    return jax.vmap(one)(latents, observed)
+    # One frame after another, not vmapped: a vmapped solve steps every frame until the
+    # slowest has converged and holds every frame's intermediates at once, so its memory
+    # grew with the number of frames.
+    return jax.lax.map(lambda pair: one(*pair), (latents, observed))
 
 
 @dataclasses.dataclass
@@ -314,15 +321,15 @@ def fit_physical_parameters(
     dtype = np.asarray(inverter.device.p1).dtype
     observed = jax.lax.map(inverter.observe, jnp.asarray(frames, dtype=dtype))
     latents = latents_from_wrench(np.asarray(wrenches), dtype)
-    # The mechanics and geometry are fitted to the fringe phase, which a unit's photometry
-    # cannot move; the photometric parameters to the whole residual, the others held.
+    # Every parameter is fitted to the fringe phase, the inversion's observable, which a
+    # unit's photometry moves only through a contact's light: the mechanics and geometry
+    # first, then the photometry, the others held.
     phase = _Problem(inverter.phase_only(), recipe.free, recipe.log)
-    whole = _Problem(inverter, recipe.free, recipe.log)
     stages = [
         (name, problem, free)
         for name, problem, free in (
             ("phase", phase, tuple(i for i, n in enumerate(recipe.free) if not _photometric(n))),
-            ("photometric", whole, tuple(i for i, n in enumerate(recipe.free) if _photometric(n))),
+            ("photometric", phase, tuple(i for i, n in enumerate(recipe.free) if _photometric(n))),
         )
         if free
     ]
