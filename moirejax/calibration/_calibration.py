@@ -326,10 +326,10 @@ def fit_physical_parameters(
     # first, then the photometry, the others held.
     phase = _Problem(inverter.phase_only(), recipe.free, recipe.log)
     stages = [
-        (name, problem, free)
-        for name, problem, free in (
-            ("phase", phase, tuple(i for i, n in enumerate(recipe.free) if not _photometric(n))),
-            ("photometric", phase, tuple(i for i, n in enumerate(recipe.free) if _photometric(n))),
+        (name, free)
+        for name, free in (
+            ("phase", tuple(i for i, n in enumerate(recipe.free) if not _photometric(n))),
+            ("photometric", tuple(i for i, n in enumerate(recipe.free) if _photometric(n))),
         )
         if free
     ]
@@ -348,9 +348,9 @@ def fit_physical_parameters(
         subset = np.sort(rng.choice(n, size=min(n, recipe.parameter_frames), replace=False))
         observed_subset = jax.tree_util.tree_map(lambda a, s=subset: a[s], observed)
         costs = {}
-        for name, problem, free in stages:
+        for name, free in stages:
             theta, block, cost = _parameter_solve(
-                problem,
+                phase,
                 theta,
                 free,
                 jax.tree_util.tree_map(lambda a, s=subset: a[s], latents),
