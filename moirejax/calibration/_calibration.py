@@ -8,8 +8,8 @@ least-squares problems, each solved with optimistix:
 
 1. the mechanical and geometric parameters, with the latents fixed, over a subset of
    frames, on the fringe phase alone ([`Inverter.phase_only`][]): the quantity the
-   inversion reads the load from, and the one a unit's photometry (contrast, defocus,
-   lighting) cannot move;
+   inversion reads the load from, and one that a unit's contrast, defocus and lighting
+   move only through the light a contact scatters;
 2. the photometric parameters (`optics.*`: gains, glow, rim, defocus), the others held,
    on the fringe phase too: the inversion reads the load from it, and the photometry
    reaches it only through the share of a contact's light in the fringe bands. Fitted to
