@@ -442,17 +442,17 @@ class Inverter(eqx.Module):
             # of the gratings' product, which the reference correction scales by, does not
             # apply to it.
             scale = jnp.where(self.fitted_light, self._light_scale(observed, fringe, predicted.light), 1.0)
-            fringe = fringe + scale.astype(fringe.dtype) * predicted.light
+            fringe = fringe + scale.astype(fringe.dtype)[:, None, None] * predicted.light
         brightness = predicted.brightness - model_reference.brightness + self.reference.brightness
         return self._band_residual(observed.fringe - fringe, observed.brightness - brightness, fringe)
 
     def contact_light_scale(
         self, observed: FringeFields, predicted: FringeFields, model_reference: FringeFields | None = None
-    ) -> Float[Array, ""]:
+    ) -> Float[Array, " families"]:
         """How many times the light the device says a contact scatters (glow and rim) best
         explains the fringe phase of `observed` bands, given a prediction of them (its
-        `light` share at the device's light); within [0, 8]. [`Inverter.band_residual`][]
-        uses it on an inverter from `phase_only(None)`.
+        `light` share at the device's light): one scale per band family, within [0, 8].
+        [`Inverter.band_residual`][] uses it on an inverter from `phase_only(None)`.
 
         A unit's elastomer need not glow as its device says: it may not glow at all, or
         glow several times more and wider. The light leaks into the fringe bands under the
@@ -462,6 +462,14 @@ class Inverter(eqx.Module):
         the phase misfit of the rest of the prediction. A solve over the load sees the
         light's best amount at every trial load, and the data Jacobian, taken through it,
         gives the load's covariance with the light marginalised.
+
+        The moiré bands share one scale and the carrier bands another. The light reaches
+        the moiré bands through the reference grating's mean transmission, at low
+        frequency, and the carrier bands through the reference grating's carrier, at the
+        gratings' own frequency, where the lens attenuates it: a unit whose lens blurs more
+        than its device says passes less of its light into the carriers (with twice the
+        device's point-spread function, 0.4 of it on the Mid design), and one common scale
+        cannot be right for both.
         """
         if predicted.light is None:
             raise ValueError(
@@ -480,19 +488,26 @@ class Inverter(eqx.Module):
 
     def _light_scale(
         self, observed: FringeFields, gratings: Complex[Array, "families m n"], light: Complex[Array, "families m n"]
-    ) -> Float[Array, ""]:
+    ) -> Float[Array, " families"]:
         full = gratings + light
         direction = jnp.conj(full) * jax.lax.rsqrt(full.real**2 + full.imag**2 + 1e-24).astype(full.dtype)
         weight = self.fringe_weight.astype(full.dtype)
         misfit = ((observed.fringe - gratings) * direction * weight).imag
         response = (light * direction * weight).imag
-        power = jnp.sum(response**2)
+        # The light reaches the moiré bands through the reference grating's mean transmission,
+        # and the carrier bands through its carrier, which the lens blurs: a unit's lens and
+        # duty set how much of it the second path passes, so each path has its own scale.
+        carrier = jnp.arange(full.shape[0]) >= self.device.n_sets
+        paths = jnp.stack([~carrier, carrier]).astype(misfit.dtype)
+        power = paths @ jnp.sum(response**2, axis=(1, 2))
+        cross = paths @ jnp.sum(misfit * response, axis=(1, 2))
+        total = paths @ jnp.sum(misfit**2 + jnp.abs(full * weight) ** 2, axis=(1, 2))
         # Without a contact there is no light to scale (nor a derivative of its scale): the
         # scale is then zero, and the division is kept off that case so that its derivative
-        # stays finite.
-        lit = power > 1e-12 * jnp.sum(misfit**2 + jnp.abs(full * weight) ** 2)
-        scale = jnp.where(lit, jnp.sum(misfit * response) / jnp.where(lit, power, 1.0), 0.0)
-        return jnp.clip(scale, 0.0, _LIGHT_SCALE_MAX)
+        # stays finite. A path without bands has no light either.
+        lit = power > 1e-12 * total
+        scale = jnp.where(lit, cross / jnp.where(lit, power, 1.0), 0.0)
+        return jnp.clip(scale, 0.0, _LIGHT_SCALE_MAX) @ paths
 
     def _data_residuals(self, y, observed: FringeFields):
         return self.band_residual(observed, self._predict(y))
