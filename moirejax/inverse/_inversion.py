@@ -112,9 +112,6 @@ _CLIPPED_SHARE = 0.05
 # rim, `Inverter.contact_light_scale`): units scatter between none and a few times the
 # nominal; more than this is a load that the light would be made to stand in for.
 _LIGHT_SCALE_MAX = 8.0
-# How weakly the parts of the contact light (glow, rim) are held to their common scale,
-# against the mean of their own information: a frame that tells them apart moves them apart.
-_LIGHT_PARTS_RIDGE = 1e-2
 
 
 def model_grid_for(
@@ -445,19 +442,16 @@ class Inverter(eqx.Module):
             # of the gratings' product, which the reference correction scales by, does not
             # apply to it.
             scale = jnp.where(self.fitted_light, self._light_scale(observed, fringe, predicted.light), 1.0)
-            fringe = fringe + jnp.sum(
-                scale.astype(fringe.dtype)[..., None, None] * predicted.light, axis=_parts(predicted.light)
-            )
+            fringe = fringe + scale.astype(fringe.dtype)[:, None, None] * predicted.light
         brightness = predicted.brightness - model_reference.brightness + self.reference.brightness
         return self._band_residual(observed.fringe - fringe, observed.brightness - brightness, fringe)
 
     def contact_light_scale(
         self, observed: FringeFields, predicted: FringeFields, model_reference: FringeFields | None = None
-    ) -> Float[Array, "*parts families"]:
-        """How many times the light the device says a contact scatters best explains the
-        fringe phase of `observed` bands, given a prediction of them (its `light` share at
-        the device's light): a scale per part of the light (glow, rim) and band family,
-        each within [0, 8].
+    ) -> Float[Array, " families"]:
+        """How many times the light the device says a contact scatters (glow and rim) best
+        explains the fringe phase of `observed` bands, given a prediction of them (its
+        `light` share at the device's light): one scale per band family, within [0, 8].
         [`Inverter.band_residual`][] uses it on an inverter from `phase_only(None)`.
 
         A unit's elastomer need not glow as its device says: it may not glow at all, or
@@ -476,12 +470,6 @@ class Inverter(eqx.Module):
         than its device says passes less of its light into the carriers (with twice the
         device's point-spread function, 0.4 of it on the Mid design), and one common scale
         cannot be right for both.
-
-        The glow and the rim are scaled apart too: units glow and show a rim in proportions
-        of their own, and the two have different shapes (a blurred pressure, a ring at the
-        contact's edge), so one scale on their sum fits neither. A frame that cannot tell
-        them apart (a small contact, whose rim lies on its glow) holds them near the one
-        scale of their sum.
         """
         if predicted.light is None:
             raise ValueError(
@@ -496,48 +484,30 @@ class Inverter(eqx.Module):
         if model_reference is None:
             model_reference = self.model_reference
         ratio = complex_ratio(self.reference.fringe, model_reference.fringe)
-        if predicted.light is None:
-            return predicted.fringe * ratio
-        return (predicted.fringe - jnp.sum(predicted.light, axis=_parts(predicted.light))) * ratio
+        return predicted.fringe * ratio if predicted.light is None else (predicted.fringe - predicted.light) * ratio
 
     def _light_scale(
-        self,
-        observed: FringeFields,
-        gratings: Complex[Array, "families m n"],
-        light: Complex[Array, "*parts families m n"],
-    ) -> Float[Array, "*parts families"]:
-        shape = light.shape
-        light = light.reshape(-1, *shape[-3:])
-        full = gratings + jnp.sum(light, axis=0)
+        self, observed: FringeFields, gratings: Complex[Array, "families m n"], light: Complex[Array, "families m n"]
+    ) -> Float[Array, " families"]:
+        full = gratings + light
         direction = jnp.conj(full) * jax.lax.rsqrt(full.real**2 + full.imag**2 + 1e-24).astype(full.dtype)
         weight = self.fringe_weight.astype(full.dtype)
         misfit = ((observed.fringe - gratings) * direction * weight).imag
-        response = (light * (direction * weight)[None]).imag
+        response = (light * direction * weight).imag
         # The light reaches the moiré bands through the reference grating's mean transmission,
         # and the carrier bands through its carrier, which the lens blurs: a unit's lens and
-        # duty set how much of it the second path passes, so each path has its own scales.
+        # duty set how much of it the second path passes, so each path has its own scale.
         carrier = jnp.arange(full.shape[0]) >= self.device.n_sets
         paths = jnp.stack([~carrier, carrier]).astype(misfit.dtype)
-        # Per path, the normal equations of the parts' scales.
-        gram = jnp.einsum("gf,pfmn,qfmn->gpq", paths, response, response)
-        projection = jnp.einsum("gf,pfmn,fmn->gp", paths, response, misfit)
-        power = jnp.trace(gram, axis1=1, axis2=2)
+        power = paths @ jnp.sum(response**2, axis=(1, 2))
+        cross = paths @ jnp.sum(misfit * response, axis=(1, 2))
         total = paths @ jnp.sum(misfit**2 + jnp.abs(full * weight) ** 2, axis=(1, 2))
-        # Where the frame cannot tell the parts apart (a small contact's rim lies on its
-        # glow; a device without a rim), their scales stay at the one scale of their sum.
-        common = jnp.sum(projection, axis=1) / jnp.maximum(jnp.sum(gram, axis=(1, 2)), 1e-30)
-        parts = light.shape[0]
-        ridge = _LIGHT_PARTS_RIDGE * power / parts
-        eye = jnp.eye(parts, dtype=gram.dtype)
-        scale = jnp.linalg.solve(
-            gram + (ridge[:, None, None] + 1e-30) * eye[None], (projection + (ridge * common)[:, None])[..., None]
-        )[..., 0]
         # Without a contact there is no light to scale (nor a derivative of its scale): the
         # scale is then zero, and the division is kept off that case so that its derivative
         # stays finite. A path without bands has no light either.
         lit = power > 1e-12 * total
-        scale = jnp.where(lit[:, None], scale, 0.0)
-        return (jnp.clip(scale, 0.0, _LIGHT_SCALE_MAX).T @ paths).reshape(shape[:-2])
+        scale = jnp.where(lit, cross / jnp.where(lit, power, 1.0), 0.0)
+        return jnp.clip(scale, 0.0, _LIGHT_SCALE_MAX) @ paths
 
     def _data_residuals(self, y, observed: FringeFields):
         return self.band_residual(observed, self._predict(y))
@@ -924,11 +894,6 @@ class Inverter(eqx.Module):
             return estimate, done, frame_track
 
         return jax.vmap(one)(frames)
-
-
-def _parts(light: Complex[Array, "*parts families m n"]) -> tuple[int, ...]:
-    """The axes of a prediction's light that hold its parts (glow and rim)."""
-    return tuple(range(light.ndim - 3))
 
 
 @eqx.filter_jit

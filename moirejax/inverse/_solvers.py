@@ -105,26 +105,21 @@ def levenberg_marquardt(
     When neither converges (a strong wrong basin: a light, strongly sheared press whose
     brightness centroid misplaces the contact by 1.7 mm ended at 300x the right cost),
     or when the better one leaves more than `_UNEXPLAINED` of the zero-load residual
-    unexplained, seven more starts in turn: the contact where the fringes changed most
-    ([`Inverter.fringe_change_centre`][moirejax.Inverter.fringe_change_centre]), the contact halfway to the centre, each
-    shear direction at half its range, and a fresh press of half the normal range on a
-    contact of typical size where the fringes changed most. The first six keep the first
-    solution's normal force and contact size, which a first solve can get wrong together:
-    on an independent renderer's unit that does not glow, one ended at -0.3 N on a
-    contact 0.4 mm wide, 5 mm off, and only the fresh press found the true load (the
-    seventh start). The second test catches a wrong basin the solver
+    unexplained, six more starts in turn: the contact where the fringes changed most
+    ([`Inverter.fringe_change_centre`][moirejax.Inverter.fringe_change_centre]), the contact halfway to the centre, and each
+    shear direction at half its range. The second test catches a wrong basin the solver
     calls converged: on 200 mixed noise-free and noisy loads, correct fits left at most
     0.14% unexplained and two wrong ones (Fx 116% and Fy 35% of range off) 1.3-1.8%.
     A faint contact in noise also leaves much unexplained and pays for the extra starts.
 
-    `when_unexplained=False` runs the seven only when neither of the first two converged: for
+    `when_unexplained=False` runs the six only when neither of the first two converged: for
     a first solve whose answer a refinement on another residual replaces (see
     [`solve_cold`][]).
 
     `more_starts=False` (streams) stops after the first two starts. On a `high`-fidelity
     recording of an uncalibrated unit with illumination drift, right fits leave 0.3-3%
     unexplained (6% without contact) and faint presses often end at `max_steps`, so the
-    further starts ran at most cold solves and took them from 0.7 to 2-3.5 s, which a live
+    six starts ran at most cold solves and took them from 0.7 to 2-3.5 s, which a live
     stream pays in dropped frames at each contact onset. A stream's cold start is usually
     a light press at contact onset, the stream follows the load from there, and a frame
     that did not converge is retried cold on the next frame.
@@ -141,7 +136,6 @@ def levenberg_marquardt(
             first.with_shear(-0.5, first.scaled_wrench[1]).vector(),
             first.with_shear(first.scaled_wrench[0], 0.5).vector(),
             first.with_shear(first.scaled_wrench[0], -0.5).vector(),
-            first.with_contact_at(fringe_centre[0], fringe_centre[1]).with_typical_radius().pressing(0.5).vector(),
         ]
     )
 
@@ -197,13 +191,13 @@ def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array,
     ([`Inverter.contact_light_scale`][moirejax.Inverter.contact_light_scale]). Returns
     `(y, r, jacobian, steps, result)`, `r` and `jacobian` those of `problem._fit`.
 
-    The further starts of a poorly explained frame run in the last refinement, whose
+    The six further starts of a poorly explained frame run in the last refinement, whose
     answer is the estimate, not in the first solve: on a unit the model does not describe
     exactly, the full residual (fringe amplitude and brightness too) leaves every frame
     poorly explained (all 40 loads of the independent renderer's set), so the first
     solve's further starts ran on every frame, for a large share of its cost, and moved no
     estimate there by more than 0.02% of its range. When neither of the first solve's two
-    starts converges, they run there too.
+    starts converges, the six run there too.
 
     Refining with the fitted light straight from the full residual's solution can end in
     a wrong basin: on a line-grating unit whose fringes see the normal force weakly, the

@@ -12,7 +12,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from .._conventions import NMM_PER_NM, WRENCH_SCALE
+from .._conventions import WRENCH_SCALE
 from ..physics import Contact
 
 
@@ -96,21 +96,6 @@ class LoadState(eqx.Module):
         """This state with its shear forces set, each in units of its axis' range."""
         shear = jnp.stack([jnp.asarray(fx, self.scaled_wrench.dtype), jnp.asarray(fy, self.scaled_wrench.dtype)])
         return eqx.tree_at(lambda s: s.scaled_wrench, self, self.scaled_wrench.at[..., :2].set(shear))
-
-    def pressing(self, fz: float | Float[Array, ""]) -> "LoadState":
-        """A press of `fz` (in units of its range) centred on this state's contact, with no
-        shear or twist."""
-        dtype = self.scaled_wrench.dtype
-        scale = jnp.asarray(WRENCH_SCALE, dtype)
-        force = jnp.asarray(fz, dtype) * scale[2]
-        moment = force / NMM_PER_NM
-        zero = jnp.zeros((), dtype)
-        wrench = jnp.stack([zero, zero, force, self.y0 * moment, -self.x0 * moment, zero])
-        return eqx.tree_at(lambda s: s.scaled_wrench, self, wrench / scale)
-
-    def with_typical_radius(self) -> "LoadState":
-        """This state with the contact radius of a typical indenter."""
-        return eqx.tree_at(lambda s: s.log_radius, self, jnp.full_like(self.log_radius, math.log(TYPICAL_RADIUS)))
 
     def with_contact_at(self, x0: Float[Array, ""], y0: Float[Array, ""]) -> "LoadState":
         """This state with the contact centred at `(x0, y0)` mm."""

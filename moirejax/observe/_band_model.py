@@ -42,7 +42,6 @@ from ..physics import (
     background_radiance,
     binary_harmonics,
     Contact,
-    contact_light_parts,
     Device,
     gaussian_mtf,
     image_coordinates,
@@ -163,26 +162,15 @@ class BandModel(eqx.Module):
 
     def __call__(self, wrench: Float[Array, "6"], contact: Contact, exposure: ArrayLike = 1.0) -> FringeFields:
         state = self.mechanics(wrench, contact)
-        # The glow and the rim apart: a unit's proportions of them are its own
-        # (`Inverter.contact_light_scale`).
-        parts = contact_light_parts(self.mechanics.device, state.tractions[2], wrench[2], contact, state.grid)
-        return self.of_deformation(state.displacement, parts, exposure)
+        return self.of_deformation(state.displacement, state.light, exposure)
 
     def of_deformation(
-        self,
-        displacement: Float[Array, "3 h w"],
-        light: Float[ArrayLike, "*parts #h #w"] = 0.0,
-        exposure: ArrayLike = 1.0,
+        self, displacement: Float[Array, "3 h w"], light: Float[ArrayLike, "*#h #w"] = 0.0, exposure: ArrayLike = 1.0
     ) -> FringeFields:
         """The bands of any surface `displacement` `(ux, uy, w)` (mm) on the model grid, with
-        the elastomer's own `light` there (the glow a contact scatters; none by default).
-        `light` may have a leading axis of parts (the glow and the rim): the bands hold
-        their sum, and `FringeFields.light` each part's share, on the same leading axis."""
+        the elastomer's own `light` there (the glow a contact scatters; none by default)."""
         device = self.mechanics.device
-        light = jnp.asarray(light, displacement.dtype)
-        parts_shape = light.shape[:-2] if light.ndim >= 2 else ()
-        light = jnp.broadcast_to(light, (*parts_shape, *displacement.shape[1:]))
-        parts = light.reshape(-1, *displacement.shape[1:])
+        light = jnp.broadcast_to(jnp.asarray(light, displacement.dtype), displacement.shape[1:])
         upper = upper_grating_phase(device, self.x, self.y, displacement)
         beat = upper - self.reference_phase
         # Everything of the frame below the carriers: the product over line sets of their
@@ -191,27 +179,20 @@ class BandModel(eqx.Module):
         low_sets = jax.vmap(line_transmission)(beat, self.beat_weights)
         transmission = jnp.prod(low_sets, axis=0)
         gain = device.optics.gain * jnp.asarray(exposure)
-        total = jnp.sum(parts, axis=0)
-        low = device.optics.offset + gain * (self.radiance * transmission + self.mean_reference * total)
+        low = device.optics.offset + gain * (self.radiance * transmission + self.mean_reference * light)
         fringe, brightness = self.band_pass(low)
-        # The elastomer's light alone, part by part, which the reference correction must leave
-        # unscaled.
-        light_fringe = jax.vmap(lambda part: self.band_pass(gain * self.mean_reference * part)[0])(parts)
-        carrier_pass = self.carrier_pass
-        if carrier_pass is not None and self.light_carrier is not None:
+        # The elastomer's light alone, which the reference correction must leave unscaled.
+        light_fringe, _ = self.band_pass(gain * self.mean_reference * light)
+        if self.carrier_pass is not None and self.light_carrier is not None:
             # The scene's light through both gratings, and the elastomer's light through the
             # reference grating alone, whose carrier sits beside the upper one's.
+            elastomer = self.light_carrier * light.astype(fringe.dtype)[None]
+            carriers = self._carriers(upper, beat, low_sets) * self.radiance.astype(fringe.dtype)[None] + elastomer
             cast = gain.astype(fringe.dtype)
-            elastomer = self.light_carrier[None] * parts.astype(fringe.dtype)[:, None]
-            carriers = self._carriers(upper, beat, low_sets) * self.radiance.astype(fringe.dtype)[None]
-            carrier_light = jax.vmap(lambda part: carrier_pass(cast * part))(elastomer)
-            fringe = jnp.concatenate([fringe, carrier_pass(cast * carriers) + jnp.sum(carrier_light, axis=0)])
-            light_fringe = jnp.concatenate([light_fringe, carrier_light], axis=1)
+            fringe = jnp.concatenate([fringe, self.carrier_pass(cast * carriers)])
+            light_fringe = jnp.concatenate([light_fringe, self.carrier_pass(cast * elastomer)])
         return FringeFields(
-            fringe=fringe,
-            brightness=brightness,
-            reference_wavevector=self.reference_wavevector,
-            light=light_fringe.reshape(*parts_shape, *light_fringe.shape[1:]),
+            fringe=fringe, brightness=brightness, reference_wavevector=self.reference_wavevector, light=light_fringe
         )
 
     def _carriers(self, upper, beat, low_sets) -> Complex[Array, "sets h w"]:

@@ -344,8 +344,7 @@ class FringeFields(eqx.Module):
     - `reference_wavevector`: the wavevector whose unit fringe `fringe` is normalised by
       (the frame's spectral peak, clipped to the band), rows `[kx, ky]` (rad/mm).
     - `light`: in a prediction ([`BandModel`][moirejax.BandModel]), the part of `fringe`
-      that the elastomer's own light puts there, with a leading axis of the light's parts
-      (glow and rim) where the model has them; `None` for a measured frame. That light
+      that the elastomer's own light puts there; `None` for a measured frame. That light
       passes the reference grating alone, so a unit's fringe contrast (its defocus, its
       duty) does not scale it as it scales the rest.
     """
@@ -353,7 +352,7 @@ class FringeFields(eqx.Module):
     fringe: Complex[Array, "families m n"]
     brightness: Float[Array, "m n"]
     reference_wavevector: Float[Array, "families 2"]
-    light: Complex[Array, "*parts families m n"] | None = None
+    light: Complex[Array, "families m n"] | None = None
 
 
 class Demodulator(eqx.Module):

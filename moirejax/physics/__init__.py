@@ -52,7 +52,6 @@ from ._optics import (
     background_radiance as background_radiance,
     binary_harmonics as binary_harmonics,
     camera_response as camera_response,
-    contact_light_parts as contact_light_parts,
     gaussian_blur_fft as gaussian_blur_fft,
     gaussian_mtf as gaussian_mtf,
     image_coordinates as image_coordinates,

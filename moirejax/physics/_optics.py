@@ -89,25 +89,10 @@ def contact_light(
     contact: Contact,
     grid: SurfaceGrid,
 ) -> Float[Array, "h w"]:
-    """Light scattered inside the elastomer at a contact, on the surface grid: the sum of
-    `contact_light_parts`."""
-    return jnp.sum(contact_light_parts(device, pressure, normal_force, contact, grid), axis=0)
-
-
-def contact_light_parts(
-    device: Device,
-    pressure: Float[Array, "h w"],
-    normal_force: Float[Array, ""],
-    contact: Contact,
-    grid: SurfaceGrid,
-) -> Float[Array, "2 h w"]:
-    r"""The two parts of the light scattered inside the elastomer at a contact: the glow
-    and the LED rim, on the surface grid.
+    r"""Light scattered inside the elastomer at a contact, on the surface grid.
 
     The glow $\kappa (P * h)$ follows the blurred pressure; the LED rim is a ring at the
     contact edge whose brightness grows as $\sqrt{F_z}$ (its area grows with the radius).
-    Units glow and show a rim in proportions of their own, so an inversion scales each
-    part apart.
     """
     optics = device.optics
     glow = optics.glow_gain * gaussian_blur_fft(pressure, optics.glow_width, grid.spacing)
@@ -116,7 +101,7 @@ def contact_light_parts(
     pressing = jnp.maximum(normal_force, 0.0)
     # ~sqrt(Fz) for firm presses, zero without contact, finite slope at zero.
     rim = optics.rim_gain * pressing / jnp.sqrt(pressing + 0.05) * ring
-    return jnp.stack([glow, rim])
+    return glow + rim
 
 
 def camera_response(device: Device, radiance: Float[Array, "h w"], exposure: ArrayLike = 1.0) -> Float[Array, "h w"]:
