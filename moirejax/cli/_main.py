@@ -750,10 +750,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_device_arguments(p)
     p.add_argument(
         "--protocol",
-        choices=["paper", "mixed", "sequence", "none", "shapes"],
+        choices=["paper", "mixed", "sequence", "none", "shapes", "vision"],
         default="paper",
         help="paper: isolated axes; mixed: combined loads; sequence: a press-twist-slide-release video; "
-        "none: no contact; shapes: spheres, flat and square punches, rings, lines and two fingertips",
+        "none: no contact; shapes: spheres, flat and square punches, rings, lines and two fingertips; "
+        "vision: no contact, colour frames of discs, rings, rectangles and pictures 0-30 mm above the pad, "
+        "with their grating-free views (grating_free/) and poses (contact.csv)",
     )
     p.add_argument(
         "--max-force",

@@ -2,11 +2,14 @@
 
 A dataset is a folder that ordinary tools can open:
 
-- `frames/`: one grayscale PNG (8- or 16-bit) per frame, e.g. `000000.png`;
+- `frames/`: one grayscale PNG (8- or 16-bit) per frame, e.g. `000000.png`, or a colour
+  (BGR) PNG per frame where the manifest says `channels: 3` (see-through frames);
 - `wrench.csv`: header `frame,fx,fy,fz,tx,ty,tz[,t][,contact]`, one row per frame, `frame`
   being the image file name relative to `frames/`; forces in N, torques in N*m, in the
   convention [`WRENCH_CONVENTION`][];
 - optionally a latent ground-truth CSV (simulated data), named by the manifest's `contacts`;
+- optionally ground-truth images (simulated data), one 16-bit PNG per frame under a folder
+  of each name the manifest's `images` lists, with the frame's file name;
 - `manifest.json`, validated against `data_schema/dataset.schema.json`. It is written last,
   so a folder without it is recognisably incomplete.
 
@@ -22,6 +25,7 @@ import datetime
 import io
 import math
 import os
+import re
 import shutil
 import warnings
 from collections.abc import Iterator, Mapping
@@ -304,6 +308,12 @@ def _format_csv(header: list[str], rows: list[list[Any]]) -> str:
 
 def _load_gray(path: Path) -> np.ndarray:
     """Read an image file as a 2-D uint8 or uint16 grayscale array; colour is converted."""
+    return _load_image(path, color=False)
+
+
+def _load_image(path: Path, *, color: bool) -> np.ndarray:
+    """Read an image file as uint8 or uint16: 2-D gray, or `(h, w, 3)` BGR with `color`
+    (a gray file is then repeated in each channel)."""
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -320,20 +330,22 @@ def _load_gray(path: Path) -> np.ndarray:
         raise DataError(f"{path}: unsupported pixel type {image.dtype} (need 8 or 16 bits)")
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
-    elif image.ndim == 3 and image.shape[2] in (3, 4):
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        if color:
+            return np.ascontiguousarray(image[:, :, :3])
         code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        image = cv2.cvtColor(image, code)
-    elif image.ndim != 2:
+        return cv2.cvtColor(image, code)
+    if image.ndim != 2:
         raise DataError(f"{path}: unsupported image layout {image.shape}")
-    return image
+    return np.repeat(image[:, :, None], 3, axis=2) if color else image
 
 
 def _quantise(frame: npt.ArrayLike, bit_depth: int) -> np.ndarray:
     """Convert a float frame in [0, 1], or a uint8/uint16 frame, to the PNG pixel type."""
     array = np.asarray(frame)
     dtype = np.uint8 if bit_depth == 8 else np.uint16
-    if array.ndim != 2:
-        raise ValueError(f"a frame must be a 2-D (height, width) array, got shape {array.shape}")
+    if not (array.ndim == 2 or (array.ndim == 3 and array.shape[2] == 3)):
+        raise ValueError(f"a frame must be a (height, width) or BGR (height, width, 3) array, got shape {array.shape}")
     if array.dtype == np.uint8:
         # 255 * 257 = 65535: full scale maps to full scale exactly.
         return array if bit_depth == 8 else array.astype(np.uint16) * np.uint16(257)
@@ -388,13 +400,19 @@ def _check_output_dir(path: Path, overwrite: bool) -> bool:
     return occupied
 
 
-def _prepare_output_dir(path: Path, overwrite: bool) -> None:
+def _prepare_output_dir(path: Path, overwrite: bool, images: tuple[str, ...] = ()) -> None:
     if _check_output_dir(path, overwrite):
         # Remove the manifest first, so the folder stops claiming to be a complete dataset.
         for name in (MANIFEST_NAME, WRENCH_NAME, CONTACTS_NAME):
             (path / name).unlink(missing_ok=True)
-        shutil.rmtree(path / FRAMES_DIR, ignore_errors=True)
-    (path / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+        for folder in (FRAMES_DIR, *images):
+            shutil.rmtree(path / folder, ignore_errors=True)
+    for folder in (FRAMES_DIR, *images):
+        (path / folder).mkdir(parents=True, exist_ok=True)
+
+
+# The names of ground-truth image folders: plain lower-case words, not the frames' own.
+_IMAGES_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
 class DatasetWriter:
@@ -415,8 +433,14 @@ class DatasetWriter:
     - `source`: free text saying where the data came from.
     - `fps`, `protocol`, `fidelity`, `seed`, `true_device`, `metadata`, `ft_alignment`:
       optional manifest fields (see `data_schema/dataset.schema.json`).
-    - `overwrite`: replace the manifest, `wrench.csv`, latent CSV and `frames/` of a non-empty
-      `path` (other files there are left alone).
+    - `images`: names of ground-truth images that every frame comes with (a simulated
+      see-through frame's `"grating_free"` view): each is written as a 16-bit PNG under a
+      folder of its name, with the frame's file name, and read back by [`Dataset.image`][].
+    - `overwrite`: replace the manifest, `wrench.csv`, latent CSV, `frames/` and the image
+      folders of a non-empty `path` (other files there are left alone).
+
+    Frames are gray `(h, w)` or colour, BGR `(h, w, 3)` in OpenCV's channel order; every
+    frame of a dataset has the same kind, and the manifest records colour as `channels: 3`.
     """
 
     def __init__(
@@ -434,8 +458,14 @@ class DatasetWriter:
         true_device: dict | None = None,
         metadata: dict | None = None,
         ft_alignment: dict | None = None,
+        images: tuple[str, ...] = (),
         overwrite: bool = False,
     ):
+        images = tuple(images)
+        if any(not _IMAGES_NAME.match(name) or name == FRAMES_DIR for name in images) or len(set(images)) < len(images):
+            raise ValueError(
+                f"images must be distinct lower-case names (letters, digits, _) other than {FRAMES_DIR!r}, got {images}"
+            )
         if bit_depth not in _MAXVAL:
             raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth}")
         if frame_shape is not None and (len(frame_shape) != 2 or min(frame_shape) < 1):
@@ -451,6 +481,7 @@ class DatasetWriter:
             seed=seed,
             metadata=metadata,
             ft_alignment=ft_alignment,
+            images=list(images) or None,
         )
         self._manifest: dict[str, Any] = {
             "format": FORMAT,
@@ -467,7 +498,9 @@ class DatasetWriter:
         }
         # Fail now on bad metadata rather than after writing thousands of frames.
         validate_json(dict(self._manifest, created=_now()), "dataset", source=str(self.path / MANIFEST_NAME))
-        _prepare_output_dir(self.path, overwrite)
+        _prepare_output_dir(self.path, overwrite, images)
+        self.images = images
+        self._channels: int | None = None
         self._names: list[str] = []
         self._seen: set[str] = set()
         self._wrenches: list[np.ndarray] = []
@@ -499,17 +532,21 @@ class DatasetWriter:
         t: _Real | None = None,
         contact: bool | np.bool_ | int | None = None,
         latent: Mapping[str, _Real] | None = None,
+        images: Mapping[str, npt.ArrayLike] | None = None,
     ) -> str:
         """Write one frame and record its wrench.
 
         **Arguments:**
 
-        - `frame`: `(height, width)` float array in [0, 1], or a uint8/uint16 array.
+        - `frame`: `(height, width)` gray or `(height, width, 3)` BGR float array in [0, 1],
+          or a uint8/uint16 array.
         - `wrench`: `[fx, fy, fz, tx, ty, tz]` in N and N*m ([`WRENCH_CONVENTION`][]).
         - `name`: file name under `frames/` (ending `.png`); default `000000.png`, ...
         - `t`, `contact`, `latent`: optional time (s), in-contact flag and latent ground
           truth (e.g. `{"x0": ..., "y0": ..., "radius": ...}`); give them for every frame or
           for none.
+        - `images`: the frame's ground-truth images, by the names given to the writer, each
+          of the frame's size (gray or BGR), float in [0, 1] or uint8/uint16.
 
         **Returns:**
 
@@ -545,11 +582,28 @@ class DatasetWriter:
                 f"every frame or for none; the first frame had "
                 f"t={self._optional[0]}, contact={self._optional[1]}, latent={self._optional[2]}"
             )
+        if set(images or {}) != set(self.images):
+            raise ValueError(
+                f"frame {name!r}: images {sorted(images or {})} differ from the writer's {sorted(self.images)}"
+            )
         image = _quantise(frame, self.bit_depth)
-        if self.frame_shape is not None and image.shape != self.frame_shape:
-            raise ValueError(f"frame {name!r}: shape {image.shape} differs from the dataset's {self.frame_shape}")
+        channels = 1 if image.ndim == 2 else 3
+        if self.frame_shape is not None and image.shape[:2] != self.frame_shape:
+            raise ValueError(f"frame {name!r}: shape {image.shape[:2]} differs from the dataset's {self.frame_shape}")
+        if self._channels is not None and channels != self._channels:
+            raise ValueError(f"frame {name!r}: {channels} channel(s), but the dataset's frames have {self._channels}")
+        truths = {}
+        for folder, truth in (images or {}).items():
+            truths[folder] = _quantise(truth, 16)
+            if truths[folder].shape[:2] != image.shape[:2]:
+                raise ValueError(
+                    f"frame {name!r}: image {folder!r} of shape {truths[folder].shape} differs from the frame's"
+                )
         atomic_write_bytes(self.path / FRAMES_DIR / name, _encode_png(image))
-        self.frame_shape = image.shape
+        for folder, truth in truths.items():
+            atomic_write_bytes(self.path / folder / name, _encode_png(truth))
+        self.frame_shape = image.shape[:2]
+        self._channels = channels
         self._optional = optional
         self._names.append(name)
         self._seen.add(name)
@@ -589,6 +643,8 @@ class DatasetWriter:
                 width=self.frame_shape[1],
                 created=_now(),
             )
+            if self._channels == 3:
+                manifest["channels"] = 3
             if latent_keys is not None:
                 latent_rows = [[n, *map(repr, v)] for n, v in zip(self._names, self._latents)]
                 latent_csv = _format_csv(["frame", *latent_keys], latent_rows)
@@ -656,11 +712,12 @@ class Dataset:
                 f"{self.path / WRENCH_NAME} has {len(table.frames)} rows"
             )
         frames_dir = self.path / FRAMES_DIR
-        for name, row in zip(table.frames, table.rows):
-            if not (frames_dir / name).is_file():
-                raise DataError(
-                    f"{self.path / WRENCH_NAME} row {row}: field 'frame': {frames_dir / name} does not exist"
-                )
+        for folder in (frames_dir, *(self.path / name for name in self.manifest.get("images", ()))):
+            for name, row in zip(table.frames, table.rows):
+                if not (folder / name).is_file():
+                    raise DataError(
+                        f"{self.path / WRENCH_NAME} row {row}: field 'frame': {folder / name} does not exist"
+                    )
         self._table = table
         for array in (table.wrenches, table.t, table.contact):
             if array is not None:
@@ -679,6 +736,16 @@ class Dataset:
     def frame_shape(self) -> tuple[int, int]:
         """`(height, width)` of every frame."""
         return self.manifest["height"], self.manifest["width"]
+
+    @property
+    def channels(self) -> int:
+        """1 for gray frames, 3 for colour (BGR) frames."""
+        return self.manifest.get("channels", 1)
+
+    @property
+    def image_names(self) -> tuple[str, ...]:
+        """Names of the ground-truth images each frame comes with (e.g. `"grating_free"`)."""
+        return tuple(self.manifest.get("images", ()))
 
     @property
     def bit_depth(self) -> int:
@@ -735,10 +802,26 @@ class Dataset:
         return self.path / FRAMES_DIR / self._table.frames[self._index(i)]
 
     def frame(self, i: int) -> Float32[np.ndarray, "h w"]:
-        """Read frame `i` from disk as float32 in [0, 1]; [`DataError`][] names a bad file."""
-        path = self.frame_path(i)
-        image = _load_gray(path)
-        if image.shape != self.frame_shape:
+        """Read frame `i` from disk as float32 in [0, 1], gray (colour frames are converted);
+        [`DataError`][] names a bad file."""
+        return self._read(self.frame_path(i), color=False)
+
+    def color_frame(self, i: int) -> Float32[np.ndarray, "h w 3"]:
+        """Read frame `i` as a float32 BGR image in [0, 1] (a gray frame in every channel)."""
+        return self._read(self.frame_path(i), color=True)
+
+    def image(self, name: str, i: int) -> Float32[np.ndarray, "h w 3"]:
+        """Read frame `i`'s ground-truth image `name` (one of [`image_names`][Dataset.image_names])
+        as a float32 BGR image in [0, 1]."""
+        if name not in self.image_names:
+            raise DataError(
+                f"{self.path / MANIFEST_NAME}: field 'images': no {name!r} (the dataset has {list(self.image_names)})"
+            )
+        return self._read(self.path / name / self._table.frames[self._index(i)], color=True)
+
+    def _read(self, path: Path, *, color: bool) -> np.ndarray:
+        image = _load_image(path, color=True) if color else _load_gray(path)
+        if image.shape[:2] != self.frame_shape:
             raise DataError(
                 f"{path}: image size {image.shape[0]}x{image.shape[1]} (rows x columns) "
                 f"differs from the dataset's {self.frame_shape[0]}x{self.frame_shape[1]}"

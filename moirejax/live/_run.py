@@ -30,7 +30,7 @@ from .._conventions import PA_PER_MPA
 from .._fileio import DataError
 from ..inverse import frame_tracker, Inverter, Status
 from ..physics import Contact, Device, surface_grid, surface_tractions
-from ..simulate import load_schedule, LoadSchedule, Simulator
+from ..simulate import load_schedule, LoadSchedule, scene_reflectance, SceneObject, Simulator
 from ._camera import (
     AbstractFrameSource,
     CallableSource,
@@ -275,8 +275,15 @@ class SimulatedSensor:
     - `seed`: seeds the default script and the noise.
     - `live`: deliver as a live camera (latest frame only, slow consumers drop frames)
         instead of every frame in order.
+    - `scene`: what is above the sensor, seen through it: a [`SceneObject`][moirejax.SceneObject]
+        in every frame, or `fn(i) -> SceneObject | None` (an object that comes and goes,
+        moves, descends onto the pad); `None` for none. With a scene the frames are colour
+        (BGR): the tactile frame's light above the black level times the
+        [`scene_reflectance`][moirejax.scene_reflectance] of frame `i`'s object, so that
+        vision mode can be exercised live (its gray is the tactile frame where nothing is in
+        view).
 
-    The ground truth of frame `i` is `truth(i)`; [`source`][SimulatedSensor.source] gives
+    The ground truth of frame `i` is `truth(i)` (and `scene_at(i)`); [`source`][SimulatedSensor.source] gives
     the frame source for [`run_pipeline`][].
     """
 
@@ -291,6 +298,7 @@ class SimulatedSensor:
         noise: Real = 0.0,
         seed: int = 0,
         live: bool = False,
+        scene: SceneObject | Callable[[int], SceneObject | None] | None = None,
     ):
         if fps is not None and not fps > 0:
             raise ValueError(f"fps must be positive or None, got {fps}")
@@ -306,6 +314,7 @@ class SimulatedSensor:
         self.noise = float(noise)
         self.seed = seed
         self.live = live
+        self.scene = scene
         self._key = jr.PRNGKey(seed)
         self._truth: dict[int, np.ndarray] = {}
         self._ended_at: int | None = None
@@ -316,14 +325,23 @@ class SimulatedSensor:
             raise TypeError("a closed-loop script has no length")
         return len(self.schedule)
 
+    def scene_at(self, index: int) -> SceneObject | None:
+        """The object above the sensor in frame `index`, or `None`."""
+        return self.scene(index) if callable(self.scene) else self.scene
+
     def render(self, wrench: Any, contact: Contact, index: int = 0) -> np.ndarray:
-        """One float32 frame in [0, 1] of `wrench` (N, N*m) at `contact`, with the sensor's noise."""
+        """One float32 frame in [0, 1] of `wrench` (N, N*m) at `contact`, with the sensor's
+        noise: gray `(h, w)`, or BGR `(h, w, 3)` with a scene."""
         key = jr.fold_in(self._key, index)
         frame = np.asarray(self.simulator.frame(key, np.asarray(wrench, np.float64), contact), np.float32)
         if self.noise > 0:
             rng = np.random.default_rng((self.seed, index))
             frame = np.clip(frame + rng.normal(0.0, self.noise, frame.shape).astype(np.float32), 0.0, 1.0)
-        return frame
+        if self.scene is None:
+            return frame
+        black = np.float32(self.device.optics.offset)
+        reflectance = np.asarray(scene_reflectance(self.device, self.scene_at(index)), np.float32)
+        return np.clip(black + (frame - black)[..., None] * reflectance, 0.0, 1.0)
 
     def reference_frame(self) -> np.ndarray:
         """A noise-free no-contact frame: the unit's reference for the inversion."""

@@ -21,6 +21,7 @@ which grows with height and saturates at $\sigma_\mathrm{defocus} (Z + a)/a$ far
 """
 
 import dataclasses
+import math
 
 import equinox as eqx
 import jax
@@ -314,3 +315,117 @@ def empty_scene_reference(
         raise ValueError(f"frames must be >= 1, got {frames}")
     keys = jax.random.split(key, frames)
     return jnp.stack([render_scene(k, device, None, fidelity, **kwargs).frame for k in keys])
+
+
+@eqx.filter_jit
+def scene_reflectance(
+    device: Device, scene: SceneObject | None, *, backdrop: tuple[float, float, float] = BACKDROP_RGB
+) -> Float[Array, "h w 3"]:
+    """What the scene sends down through the sensor at each pixel, relative to the empty
+    view: `(h, w, 3)` BGR, 1 on the backdrop.
+
+    The object is sampled in its own plane and defocused by its height as in
+    [`render_scene`][], at the pixels (no supersampling). Multiplying the light of a tactile
+    frame above the camera's black level by it, channel by channel, gives the colour frame
+    of the scene seen through a sensor that may be pressed: the gratings and the contact
+    modulate the light, the scene tints it. It is how the live [`SimulatedSensor`][moirejax.live.SimulatedSensor]
+    shows a scene.
+    """
+    if scene is None:
+        return jnp.ones((device.height, device.width, 3))
+    x, y = image_coordinates(device)
+    background = jnp.asarray(backdrop, dtype=float)
+    rgb = _scene_rgb(device, scene, background, x, y, 1 / device.px_per_mm) / background[:, None, None]
+    return jnp.moveaxis(rgb[::-1], 0, -1)
+
+
+# Saturated colours near the six hue classes of the paper's colour card (linear RGB).
+_SCENE_COLOURS = (
+    (0.8, 0.1, 0.1),
+    (0.9, 0.45, 0.05),
+    (0.85, 0.8, 0.1),
+    (0.1, 0.7, 0.2),
+    (0.1, 0.7, 0.8),
+    (0.5, 0.15, 0.7),
+)
+# The kinds of the vision protocol: the shapes, then each shipped texture by name.
+SCENE_KINDS = ("disc", "ring", "rectangle", *SCENE_TEXTURES)
+
+
+def scene_schedule(
+    device: Device, n: int, seed: int = 0, *, max_height: float = 30.0
+) -> list[tuple[str, SceneObject] | None]:
+    """The scenes of `n` see-through frames that mix objects, poses and heights: each an
+    entry `(kind, object)`, the kind one of `SCENE_KINDS` (`"disc"`, `"ring"`,
+    `"rectangle"` or a texture's name), or `None` for an empty view.
+
+    The session starts with a few empty frames (`None`: the empty view a unit records for
+    restoration), and every tenth frame after them is empty too. The others take a disc, a
+    ring, a rectangle and a picture (the textures of `SCENE_TEXTURES` in turn) in turn, at
+    a height drawn uniformly in [0, `max_height`] mm above the pad, a yaw drawn uniformly
+    and one of six saturated colours. Sizes and positions scale with what the camera sees
+    at that height, $(Z + a + h)/Z$ times the rectified field: the object spans 25-50% of
+    the field and lies wholly inside it.
+    """
+    if n < 1:
+        raise ValueError(f"need at least one frame, got n={n}")
+    if not max_height >= 0:
+        raise ValueError(f"max_height must be >= 0 mm, got {max_height}")
+    rng = np.random.default_rng(seed)
+    empty = max(2, min(8, n // 50)) if n >= 4 else 0
+    schedule: list[tuple[str, SceneObject] | None] = [None] * min(empty, n)
+    textures: dict[str, SceneObject] = {}
+    shown = 0
+    for i in range(n - len(schedule)):
+        if i % 10 == 9:
+            schedule.append(None)
+            continue
+        kind = ("disc", "ring", "rectangle", "texture")[shown % 4]
+        texture = SCENE_TEXTURES[(shown // 4) % len(SCENE_TEXTURES)]
+        name = texture if kind == "texture" else kind
+        shown += 1
+        height = float(rng.uniform(0.0, max_height))
+        half = float(scene_magnification(device, height) * min(device.height, device.width) / 2 / device.px_per_mm)
+        length = float(rng.uniform(0.5, 1.0)) * half
+        yaw = float(rng.uniform(-90.0, 90.0))
+        rgb = _SCENE_COLOURS[int(rng.integers(len(_SCENE_COLOURS)))]
+        if kind == "texture":
+            if texture not in textures:
+                textures[texture] = scene_texture(texture, 1.0)
+            image = textures[texture].image
+            assert image is not None
+            aspect = image.shape[0] / image.shape[1]
+            reach = length / 2 * math.hypot(1.0, aspect)
+        elif kind == "rectangle":
+            width = length * float(rng.uniform(0.25, 0.6))
+            reach = math.hypot(length, width) / 2
+        else:
+            reach = length / 2
+        x, y = (float(u) * max(half - reach, 0.0) for u in rng.uniform(-1.0, 1.0, 2))
+        if kind == "disc":
+            scene = scene_disc(x, y, length, height=height, rgb=rgb)
+        elif kind == "ring":
+            scene = scene_ring(x, y, length, length * float(rng.uniform(0.4, 0.7)), height=height, rgb=rgb)
+        elif kind == "rectangle":
+            scene = scene_rectangle(x, y, length, width, yaw_deg=yaw, height=height, rgb=rgb)
+        else:
+            scene = dataclasses.replace(
+                textures[texture], x=x, y=y, yaw_deg=yaw, height=height, length=length, width=length * aspect
+            )
+        schedule.append((name, scene))
+    return schedule
+
+
+def scene_summary(entry: tuple[str, SceneObject] | None) -> dict[str, float]:
+    """The ground truth of an entry of [`scene_schedule`][moirejax.scene_schedule] as numbers:
+    `kind` (its index in `SCENE_KINDS`: disc, ring, rectangle, then each texture), the pose
+    `x`, `y` (mm, wrench frame), `yaw_deg` and `height` (mm above the pad), the size `length`
+    and `width` (mm, as for [`SceneObject`][]), and the colour `r`, `g`, `b` (linear, of a
+    shape; NaN for a texture); all NaN for an empty view."""
+    keys = ("kind", "x", "y", "yaw_deg", "height", "length", "width", "r", "g", "b")
+    if entry is None:
+        return dict.fromkeys(keys, math.nan)
+    kind, scene = entry
+    rgb = (math.nan,) * 3 if scene.shape == "texture" else tuple(float(c) for c in scene.rgb)
+    pose = (scene.x, scene.y, scene.yaw_deg, scene.height, scene.length, scene.width)
+    return dict(zip(keys, (float(SCENE_KINDS.index(kind)), *(float(v) for v in pose), *rgb)))

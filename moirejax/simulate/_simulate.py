@@ -4,8 +4,10 @@ A simulated unit is a nominal design plus fabrication deviations (pitch, angle,
 separation, stiffness, grating registration, optics); datasets record the nominal
 device and, apart from it, the true one. Load protocols follow the paper's
 calibration (isolated axes), random mixed loads, a manipulation-like sequence, no
-contact, or contacts of every shape of the indenter library (`shapes`: spheres, flat and
-square punches, rings, lines, two fingertips, each solved through its own mechanics).
+contact, contacts of every shape of the indenter library (`shapes`: spheres, flat and
+square punches, rings, lines, two fingertips, each solved through its own mechanics), or no
+contact with objects in view above the pad (`vision`: colour see-through frames and their
+ground truth).
 """
 
 import dataclasses
@@ -31,9 +33,10 @@ from ..physics import (
     render_frame_high,
 )
 from ._contacts import CONTACT_FAMILIES, contact_summary, indenter_deformation, IndenterFrame, shape_schedule
+from ._scene import render_scene, SCENE_KINDS, scene_schedule, scene_summary
 
 
-Protocol = Literal["paper", "mixed", "sequence", "none", "shapes"]
+Protocol = Literal["paper", "mixed", "sequence", "none", "shapes", "vision"]
 # The protocols of `load_schedule`: one Hertz contact per frame.
 PROTOCOLS = ("paper", "mixed", "sequence", "none")
 
@@ -251,6 +254,15 @@ def simulate_dataset(
     frame's wrench the resultant of its traction field; its latent columns are the centre
     of pressure (`x0`, `y0`), the contact `area` (mm²), the `radius` of a disc of that area and
     the `family` (its index in [`CONTACT_FAMILIES`][moirejax.CONTACT_FAMILIES]).
+
+    The `vision` protocol has no contact: each frame sees one object of
+    [`scene_schedule`][moirejax.scene_schedule] (discs, rings, rectangles and the shipped
+    textures at 0-30 mm above the pad), or none, through the sensor by
+    [`render_scene`][moirejax.render_scene]. Its frames are colour (BGR PNGs), and each comes
+    with its ground truth: the grating-free view as a 16-bit PNG under `grating_free/`, and the
+    object's [`scene_summary`][moirejax.scene_summary] in the latent columns (`kind`, its
+    index in the manifest's `metadata.scene_kinds`; `x`, `y`, `yaw_deg`, `height`, `length`,
+    `width`; `r`, `g`, `b`). `fidelity="model"` renders them without camera noise, in 16 bits.
     """
     from tqdm.auto import tqdm
 
@@ -261,6 +273,8 @@ def simulate_dataset(
     if max_force is not None and protocol != "shapes":
         raise ValueError(f"max_force applies to the shapes protocol only, not {protocol!r}")
     simulator = Simulator(unit, fidelity=fidelity, fabrication_key=jr.PRNGKey(seed + 1000))
+    if protocol == "vision":
+        return _simulate_vision(out, nominal, unit, simulator, n, seed, progress=progress, overwrite=overwrite)
     if protocol == "shapes":
         contacts = shape_schedule(n, seed, PAPER_RANGES["fz"] if max_force is None else max_force)
         schedule = LoadSchedule(
@@ -326,6 +340,68 @@ def simulate_dataset(
     return out
 
 
+def _simulate_vision(
+    out: str | Path,
+    nominal: Device,
+    unit: Device,
+    simulator: Simulator,
+    n: int,
+    seed: int,
+    *,
+    progress: bool,
+    overwrite: bool,
+) -> Path:
+    """The `vision` protocol of [`simulate_dataset`][]: see-through frames of a scene schedule."""
+    from tqdm.auto import tqdm
+
+    from ..data import DatasetWriter
+
+    scenes = scene_schedule(unit, n, seed)
+    camera = simulator.high
+    if simulator.fidelity == "model":
+        # A camera without noise, quantised finely enough to keep the render.
+        camera = dataclasses.replace(camera, full_well=1e12, read_noise=0.0, bit_depth=16)
+    key = jr.PRNGKey(seed + 2000)
+    out = Path(out)
+    samples, titles = [], []
+    sample_at = set(np.linspace(0, n - 1, min(n, 12)).astype(int).tolist())
+    with DatasetWriter(
+        out,
+        device=device_to_json(nominal),
+        true_device=device_to_json(unit),
+        frame_shape=(nominal.height, nominal.width),
+        bit_depth=8 if simulator.fidelity == "high" else 16,
+        source=f"moirejax simulate ({simulator.fidelity} fidelity)",
+        protocol="vision",
+        fidelity=simulator.fidelity,
+        seed=seed,
+        metadata={"scene_kinds": list(SCENE_KINDS)},
+        images=("grating_free",),
+        overwrite=overwrite,
+    ) as writer:
+        for i in tqdm(range(n), desc="simulate vision", disable=not progress, unit="frame"):
+            entry = scenes[i]
+            seen = render_scene(jr.fold_in(key, i), unit, None if entry is None else entry[1], camera)
+            frame = np.clip(np.asarray(seen.frame), 0.0, 1.0)
+            writer.add(
+                frame,
+                np.zeros(6),
+                contact=False,
+                latent=scene_summary(entry),
+                images={"grating_free": np.clip(np.asarray(seen.grating_free), 0.0, 1.0)},
+            )
+            if i in sample_at:
+                samples.append((i, frame))
+                titles.append(
+                    "empty"
+                    if entry is None
+                    else f"#{i} {entry[0]} at ({float(entry[1].x):+.1f}, {float(entry[1].y):+.1f}) mm, "
+                    f"{float(entry[1].height):.0f} mm up"
+                )
+    write_contact_sheet(out.with_name(out.name + "_contact_sheet.png"), samples, titles=titles)
+    return out
+
+
 def _append_video(video, path: Path, frame: np.ndarray):
     import cv2
 
@@ -336,8 +412,15 @@ def _append_video(video, path: Path, frame: np.ndarray):
     return video
 
 
-def write_contact_sheet(path: Path, samples: list[tuple[int, np.ndarray]], schedule: LoadSchedule) -> None:
-    """A grid of sample frames, each titled with its wrench."""
+def write_contact_sheet(
+    path: Path,
+    samples: list[tuple[int, np.ndarray]],
+    schedule: LoadSchedule | None = None,
+    *,
+    titles: list[str] | None = None,
+) -> None:
+    """A grid of sample frames (gray, or BGR colour), each titled with its wrench from
+    `schedule`, or with its entry of `titles`."""
     from .._plotting import pyplot, save_figure
 
     plt = pyplot()
@@ -346,8 +429,14 @@ def write_contact_sheet(path: Path, samples: list[tuple[int, np.ndarray]], sched
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.4 * rows), squeeze=False)
     for ax in axes.flat:
         ax.axis("off")
-    for ax, (i, frame) in zip(axes.flat, samples):
-        ax.imshow(frame, cmap="gray", vmin=0, vmax=1)
+    for k, (ax, (i, frame)) in enumerate(zip(axes.flat, samples)):
+        if frame.ndim == 3:
+            ax.imshow(frame[..., ::-1])
+        else:
+            ax.imshow(frame, cmap="gray", vmin=0, vmax=1)
+        if titles is not None or schedule is None:
+            ax.set_title(titles[k] if titles is not None else f"#{i}", fontsize=7)
+            continue
         w = schedule.wrench[i]
         ax.set_title(
             f"#{i} F=({w[0]:+.2f},{w[1]:+.2f},{w[2]:.2f}) N\nT=({w[3] * 1e3:+.1f},{w[4] * 1e3:+.1f},{w[5] * 1e3:+.1f}) mN·m",
