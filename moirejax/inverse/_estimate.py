@@ -9,7 +9,7 @@ import numpy as np
 import optimistix as optx
 
 from .._conventions import WRENCH_SCALE
-from ._state import Estimate, LoadState, N_PRIORS, Status, Track, WRENCH_COORDINATES
+from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track
 
 
 if TYPE_CHECKING:
@@ -33,12 +33,29 @@ _SURFACE_SIGMAS = 3.0
 _TILE_CELLS = 4
 
 
-def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian, steps, result, start, pending=None):
+def finish(
+    problem: "Inverter",
+    screen,
+    observed,
+    r_zero,
+    noise,
+    y,
+    r,
+    jacobian,
+    steps,
+    result,
+    start,
+    pending=None,
+    unexplained_share: float = _UNEXPLAINED_SHARE,
+):
     """Covariance, contact test and status of a solution `y` with residual `r`; the
     estimate is at `y + pending` (see `_solvers.chord`), the track stays at `y`,
-    where its prediction is known."""
+    where its prediction is known. A solution that leaves more than `unexplained_share`
+    of the fringe phase's change (above the noise) is `unexplained`. `problem` is an
+    [`Inverter`][] or its [`ContactPair`][moirejax.inverse._second_contact.ContactPair];
+    the latter's solution hands on no [`Track`][] (`None`)."""
     dtype = y.dtype
-    r_data = r[:-N_PRIORS]
+    r_data = r[: jacobian.shape[0]]
     # The priors were weighed against the pixel noise. Where the model misses part of
     # the frame (a unit or renderer it does not describe exactly), the residual is larger
     # than that noise, the data say less than the pixel noise suggests, and the priors
@@ -87,9 +104,10 @@ def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian,
     model_part = (vectors * jnp.clip(values, 0.0, None)[None, :]) @ vectors.T
     cov_y = unit_cov * variance + model_part + prior_part
     scale = jnp.asarray(WRENCH_SCALE, dtype)
-    covariance = cov_y[WRENCH_COORDINATES, WRENCH_COORDINATES] * scale[:, None] * scale[None, :]
+    rows = problem._wrench_rows(dtype)
+    covariance = (rows @ cov_y @ rows.T) * scale[:, None] * scale[None, :]
     y_out = y + pending
-    solution = LoadState.from_vector(y_out)
+    solution, second, second_wrench = problem._summary(y_out)
     wrench, contact, exposure = solution.wrench, solution.contact, solution.exposure
     # Contact from the data: has the fringe phase moved beyond its noise somewhere?
     in_contact = problem._phase_change_statistic(observed, screen) > problem.contact_threshold
@@ -104,7 +122,7 @@ def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian,
     implausible = jnp.any(jnp.abs(solution.scaled_wrench) > _IMPLAUSIBLE_RANGES) | _off_the_surface(
         problem.device, wrench, covariance
     )
-    unexplained = (left > _UNEXPLAINED_SHARE * jnp.maximum(change, 0.0)) | implausible
+    unexplained = (left > unexplained_share * jnp.maximum(change, 0.0)) | implausible
     # An unexplained frame keeps its wrench and covariance, and a converged one still
     # seeds the next frame of a stream: the flag is for the user, not the solver.
     ok = (status == Status.CONVERGED) | (status == Status.MAX_STEPS)
@@ -114,6 +132,7 @@ def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian,
     wrench = jnp.where(ok, wrench, jnp.where(status == Status.NO_CONTACT, jnp.zeros(6, dtype), nan6))
     covariance = jnp.where(ok | (status == Status.NO_CONTACT), covariance, jnp.full((6, 6), jnp.nan, dtype))
     sigma = jnp.sqrt(jnp.clip(jnp.diagonal(covariance), 0.0, None))
+    second_wrench = jnp.where(ok, second_wrench, jnp.zeros(6, dtype))
     estimate = Estimate(
         wrench=wrench,
         covariance=covariance,
@@ -123,8 +142,14 @@ def finish(problem: "Inverter", screen, observed, r_zero, noise, y, r, jacobian,
         status=status,
         steps=steps,
         rms=jnp.sqrt(variance),
-        state=LoadState.from_vector(jnp.where(ok, y_out, start)),
+        state=problem._summary(jnp.where(ok, y_out, start))[0],
+        misfit=jnp.where(change > 0, jnp.maximum(left, 0.0) / jnp.where(change > 0, change, 1.0), 0.0),
+        second_contact=second,
+        second_wrench=second_wrench,
     )
+    if y.shape[-1] != N_UNKNOWNS:
+        # A solution with a second contact has no one-patch linearisation to hand on.
+        return estimate, None
     # Only a converged contact is a good linearisation point for the next frame.
     track = Track(
         state=LoadState.from_vector(jnp.where(ok, y, jnp.nan)),

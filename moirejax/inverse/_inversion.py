@@ -71,8 +71,9 @@ from ..observe import (
     stray_beat_clearance,
     white_noise_variance,
 )
-from ..physics import Device, grid_shape
+from ..physics import Contact, Device, grid_shape
 from ._estimate import finish
+from ._second_contact import _PAIR_UNEXPLAINED_SHARE, _SECOND_CONTACT_TRIGGER, ContactPair, solve_pair
 from ._solvers import best_start, chord, solve_cold
 from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track, TYPICAL_RADIUS
 
@@ -530,6 +531,15 @@ class Inverter(eqx.Module):
         observed, noise = args
         return jnp.concatenate([self._data_residuals(y, observed), self._prior_residuals(y, noise)])
 
+    def _wrench_rows(self, dtype) -> Float[Array, "6 10"]:
+        # The scaled wrench among the solvers' coordinates, as the rows of a linear map.
+        return jnp.eye(6, N_UNKNOWNS, dtype=dtype)
+
+    def _summary(self, y) -> tuple[LoadState, Contact, Float[Array, "6"]]:
+        # The state an estimate reports, its second contact (none) and that one's wrench.
+        nan = jnp.full((), jnp.nan, y.dtype)
+        return LoadState.from_vector(y), Contact(nan, nan, nan), jnp.zeros(6, y.dtype)
+
     def observe(self, frame: Float[Array, "h w"]) -> FringeFields:
         """Demodulate a frame, normalised at the reference frame's wavevectors."""
         return self.demodulator(frame, self.reference.reference_wavevector)
@@ -627,11 +637,14 @@ class Inverter(eqx.Module):
         moiré families: a carrier's change wraps where its phase winds fast (at a twisted
         contact's rim), and its energy peaks there, not at the centre.
         """
+        return jnp.stack(self._peak_centroid(self._fringe_change_energy(observed)))
+
+    def _fringe_change_energy(self, observed: FringeFields) -> Float[Array, "m n"]:
+        # The moiré families' change from the reference at each coarse-grid point.
         sets = self.device.n_sets
-        change = jnp.sum(
+        return jnp.sum(
             jnp.abs(observed.fringe[:sets] - self.reference.fringe[:sets]) ** 2 * self.fringe_weight[:sets] ** 2, axis=0
         )
-        return jnp.stack(self._peak_centroid(change))
 
     def _peak_centroid(self, weight: Float[Array, "m n"]) -> tuple[Float[Array, ""], Float[Array, ""]]:
         """Centroid of a non-negative coarse-grid field in a 3 mm window around its peak,
@@ -828,6 +841,9 @@ class Inverter(eqx.Module):
         describes as best explains the frame at each load ([`Inverter.contact_light_scale`][]):
         neither the unit's brightness, nor its fringes' amplitude, which photometry moves,
         nor how much its elastomer glows biases the estimate.
+
+        The solution has one contact patch; [`Inverter.second_contact`][] reads a frame
+        that one patch leaves poorly explained with two.
         """
         screen, observed, r_zero, noise = self._prepare(frame)
         args = (observed, noise)
@@ -865,6 +881,48 @@ class Inverter(eqx.Module):
         y, r, jacobian, steps, result = jax.lax.cond(needed, solved, skipped, None)
         fit = self._fit
         return finish(fit, screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, y0)[0]
+
+    def second_contact(self, frame: Real[Array, "h w"], estimate: Estimate) -> Estimate:
+        """`estimate` of `frame`, read again with two contact patches where one leaves more
+        than 5 % of the fringe phase's change unexplained (`Estimate.misfit`) and two
+        explain most of what it left; otherwise `estimate` itself. Pure and jit-able.
+
+        Two fingertips on the pad, or an edge, read through one patch come out wrong on
+        every axis. [`invert`][] and `moirejax invert` call this on every frame whose
+        estimate needs it (a stream from a camera does not: the solve takes seconds). The
+        estimate's `second_contact` and `second_wrench` then say where the second patch is
+        and what it carries; see `moirejax.inverse._second_contact` for how it is found and
+        when it is kept.
+        """
+        screen, observed, _, noise = self._prepare(frame)
+        args = (observed, noise)
+        fit = self._fit
+        r_zero = fit._zero_residuals(observed)
+        y = estimate.state.vector().astype(r_zero.dtype)
+        r = fit.residuals(y, args)
+        status = estimate.status
+        believed = (status == Status.CONVERGED) | (status == Status.MAX_STEPS) | (status == Status.UNEXPLAINED)
+        needed = believed & (estimate.contacts == 1) & (estimate.misfit > _SECOND_CONTACT_TRIGGER)
+
+        def two_patches(_):
+            y2, r2, jacobian2, steps2, result2, kept = solve_pair(fit, y, r, args)
+            pair = finish(
+                ContactPair(fit),
+                screen,
+                observed,
+                r_zero,
+                noise,
+                y2,
+                r2,
+                jacobian2,
+                estimate.steps + steps2,
+                result2,
+                y2,
+                unexplained_share=_PAIR_UNEXPLAINED_SHARE,
+            )[0]
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(kept, a, b), pair, estimate)
+
+        return jax.lax.cond(needed, two_patches, lambda _: estimate, None)
 
     def chord_batch(self, frames: Real[Array, "b h w"], track: "Track") -> tuple[Estimate, Bool[Array, " b"], "Track"]:
         """Frozen-Jacobian iterations for a batch of nearby frames from one shared `track`.

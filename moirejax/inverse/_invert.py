@@ -15,6 +15,7 @@ from jaxtyping import Array, ArrayLike, Float, Real
 
 from ..data import unit_frame
 from ._inversion import Inverter
+from ._second_contact import _SECOND_CONTACT_TRIGGER
 from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track
 
 
@@ -61,7 +62,8 @@ def invert(
         raise ValueError("init starts frames solved on their own; a sequence continues from its own frames")
     if isinstance(frames, np.ndarray | jax.Array) and frames.ndim == 2:
         start = _cold_start(inverter) if init is None else init
-        return _solve(inverter, jnp.asarray(unit_frame(np.asarray(frames))), start)
+        frame = jnp.asarray(unit_frame(np.asarray(frames)))
+        return with_second_contact(inverter, frame, _solve(inverter, frame, start))
 
     from tqdm.auto import tqdm
 
@@ -74,7 +76,8 @@ def invert(
         estimates = []
         for i, frame in enumerate(bar):
             start = cold if init is None else jax.tree_util.tree_map(lambda x, i=i: x[i], init)
-            estimates.append(jax.device_get(_solve(inverter, jnp.asarray(unit_frame(frame)), start)))
+            frame = jnp.asarray(unit_frame(frame))
+            estimates.append(jax.device_get(with_second_contact(inverter, frame, _solve(inverter, frame, start))))
     if not estimates:
         raise ValueError("no frames to invert")
     return jax.tree_util.tree_map(lambda *x: np.stack(x), *estimates)
@@ -134,6 +137,21 @@ class FrameTracker:
 @eqx.filter_jit
 def _solve(inverter: Inverter, frame, init: LoadState) -> Estimate:
     return inverter.solve(frame, init)
+
+
+@eqx.filter_jit
+def _second_contact(inverter: Inverter, frame, estimate: Estimate) -> Estimate:
+    return inverter.second_contact(frame, estimate)
+
+
+def with_second_contact(inverter: Inverter, frame, estimate: Estimate) -> Estimate:
+    """[`Inverter.second_contact`][] of one frame's estimate, compiled only once a frame
+    needs it: most sets never do, and the two-patch solve is a program of its own."""
+    status = int(estimate.status)
+    believed = status in (Status.CONVERGED, Status.MAX_STEPS, Status.UNEXPLAINED)
+    if believed and int(estimate.contacts) == 1 and float(estimate.misfit) > _SECOND_CONTACT_TRIGGER:
+        return _second_contact(inverter, frame, estimate)
+    return estimate
 
 
 def _cold_start(inverter: Inverter) -> LoadState:

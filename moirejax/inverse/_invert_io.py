@@ -8,13 +8,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .._conventions import WRENCH_AXES
 from .._fileio import atomic_write_text, check_output_file, DataError, DataWarning
 from ..data import IMAGE_SUFFIXES
 from ._inversion import Inverter
-from ._invert import _invert_chunk, frame_tracker
+from ._invert import _invert_chunk, frame_tracker, with_second_contact
 from ._state import Estimate, Status
 
 
@@ -25,6 +26,10 @@ CSV_HEADER = (
     "x0",
     "y0",
     "radius",
+    "contacts",
+    "second_x0",
+    "second_y0",
+    "second_radius",
     "status",
     "message",
 )
@@ -185,18 +190,21 @@ def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head
             wrench[ok] = head.correct(wrench[ok], np.asarray(c.x0)[ok], np.asarray(c.y0)[ok], np.asarray(c.radius)[ok])
     sigma = np.asarray(estimate.sigma)
     status = np.asarray(estimate.status)
-    x0, y0, radius = (np.asarray(v) for v in (estimate.contact.x0, estimate.contact.y0, estimate.contact.radius))
+    patch = [np.asarray(v) for v in (estimate.contact.x0, estimate.contact.y0, estimate.contact.radius)]
+    second = estimate.second_contact
+    contacts = np.asarray(estimate.contacts)
+    patch += [contacts, *(np.asarray(v) for v in (second.x0, second.y0, second.radius))]
     rows = []
     for i, name in enumerate(names):
         code = Status(int(status[i]))
         message = messages[i] or code.message
-        rows.append([name, *wrench[i], *sigma[i], x0[i], y0[i], radius[i], code.name.lower(), message])
+        rows.append([name, *wrench[i], *sigma[i], *(v[i] for v in patch), code.name.lower(), message])
     return rows
 
 
 def _failed_row(name: str, code: Status, message: str) -> list:
     nan = float("nan")
-    return [name, *([nan] * 12), nan, nan, nan, code.name.lower(), message]
+    return [name, *([nan] * 12), nan, nan, nan, 0, nan, nan, nan, code.name.lower(), message]
 
 
 def invert_recording(
@@ -238,6 +246,7 @@ def invert_recording(
         if not pending:
             return
         estimates, track = _invert_chunk(inverter, [f for _, f in pending], track, batch)
+        estimates = [with_second_contact(inverter, jnp.asarray(frame), e) for (_, frame), e in zip(pending, estimates)]
         stacked = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *estimates)
         rows.extend(_rows([name for name, _ in pending], stacked, [None] * len(pending), head))
         pending.clear()
@@ -265,6 +274,7 @@ def invert_recording(
                 flush()
             continue
         estimate, track = step(frame, track)
+        estimate = with_second_contact(inverter, jnp.asarray(frame), estimate)
         rows.extend(_rows([name], _expand(estimate), [None], head))
     flush()
     for row in rows:

@@ -163,6 +163,14 @@ class Estimate(eqx.Module):
       that would explain the fit's residual (frame units); well above the camera noise
       means the model does not explain the frame.
     - `state`: the fitted [`LoadState`][], to warm-start the next frame.
+    - `misfit`: the share of the fringe phase's change from the reference (above the pixel
+      noise) that the fit leaves: a few thousandths to a few hundredths where the model
+      describes the frame; a frame above one half is `unexplained`. Zero without contact.
+    - `second_contact`, `second_wrench`: a frame that one patch does not explain and two
+      do (two fingertips, an edge pressed at two places) is read with a second patch:
+      its [`Contact`][] and the share of `wrench` it carries (about the origin). `contact`
+      is then the patch that carries the more normal force. Without a second patch,
+      `second_wrench` is zero and `second_contact` NaN.
     """
 
     wrench: Float[Array, "*b 6"]
@@ -174,6 +182,14 @@ class Estimate(eqx.Module):
     steps: Int[Array, "*b"]
     rms: Float[Array, "*b"]
     state: LoadState
+    misfit: Float[Array, "*b"]
+    second_contact: Contact
+    second_wrench: Float[Array, "*b 6"]
+
+    @property
+    def contacts(self) -> Int[Array, "*b"]:
+        """How many contact patches the frame was read with: 1, or 2 (see `second_contact`)."""
+        return 1 + jnp.any(self.second_wrench != 0, axis=-1).astype(jnp.int32)
 
 
 class Track(eqx.Module):

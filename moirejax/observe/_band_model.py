@@ -164,6 +164,16 @@ class BandModel(eqx.Module):
         state = self.mechanics(wrench, contact)
         return self.of_deformation(state.displacement, state.light, exposure)
 
+    def of_contacts(
+        self, wrenches: Float[Array, "contacts 6"], contacts: Contact, exposure: ArrayLike = 1.0
+    ) -> FringeFields:
+        """The bands of several contacts pressing at once: `wrenches[i]` (N, N·m, about the
+        origin) through the patch `contacts` holds in row `i` (a [`Contact`][] whose fields
+        have a leading axis). The layer is linear, so the contacts' displacements add, and
+        so does the light each scatters."""
+        states = jax.vmap(self.mechanics)(wrenches, contacts)
+        return self.of_deformation(jnp.sum(states.displacement, axis=0), jnp.sum(states.light, axis=0), exposure)
+
     def of_deformation(
         self, displacement: Float[Array, "3 h w"], light: Float[ArrayLike, "*#h #w"] = 0.0, exposure: ArrayLike = 1.0
     ) -> FringeFields:

@@ -1,0 +1,93 @@
+"""Two contacts at once: the bands superpose, and a frame one patch cannot explain is read
+with two, on frames rendered through the simulator's own indenter mechanics."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import moirejax as mj
+from moirejax import Contact, Indenter, invert, Inverter, Status
+
+
+pytestmark = pytest.mark.xdist_group("second_contact")
+
+SCALE = np.array([mj.PAPER_RANGES[axis] for axis in mj.WRENCH_AXES])
+
+
+@pytest.fixture(scope="module")
+def mid():
+    return mj.preset("mid")
+
+
+def test_contacts_superpose_in_the_bands(mid):
+    # The layer is linear: two halves of a load at one place are the whole load (without the
+    # rim light, which grows as the square root of each contact's own normal force); a
+    # contact without load adds nothing, rim included; and the order of the contacts does
+    # not matter.
+    demodulator = mj.Demodulator((mid.height, mid.width), float(mid.px_per_mm), mid.moire_wavevectors())
+    model = mj.band_model(mid, demodulator, (64, 64), mid.moire_wavevectors())
+    wrench = jnp.array([0.1, -0.05, 0.8, 0.0, 0.0, 0.002])
+    other = jnp.array([0.0, 0.04, 0.4, -0.001, 0.0016, 0.0])
+    here, there = Contact(-3.0, 2.0, 2.5), Contact(4.0, -1.0, 3.0)
+    stack = lambda *cs: jax.tree_util.tree_map(lambda *v: jnp.stack(v), *cs)  # noqa: E731
+    close = lambda a, b: np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)  # noqa: E731
+
+    one = model(wrench, here)
+    alone = model.of_contacts(jnp.stack([wrench, jnp.zeros(6)]), stack(here, there))
+    close(alone.fringe, one.fringe)
+    close(alone.light, one.light)
+    both = model.of_contacts(jnp.stack([wrench, other]), stack(here, there))
+    swapped = model.of_contacts(jnp.stack([other, wrench]), stack(there, here))
+    close(both.fringe, swapped.fringe)
+    assert float(jnp.max(jnp.abs(both.fringe - one.fringe))) > 0.1
+    no_rim = eqx.tree_at(lambda m: m.mechanics.device.optics.rim_gain, model, 0.0)
+    halves = no_rim.of_contacts(jnp.stack([0.5 * wrench, 0.5 * wrench]), stack(here, here))
+    close(halves.fringe, no_rim(wrench, here).fringe)
+    close(halves.brightness, no_rim(wrench, here).brightness)
+
+
+@pytest.fixture(scope="module")
+def simulator(mid):
+    return mj.Simulator(mid, fidelity="model")
+
+
+@pytest.fixture(scope="module")
+def inverter(mid, simulator):
+    rest = simulator.deformed_frame(jax.random.PRNGKey(0), mj.indenter_deformation(mid, []))
+    return Inverter(mid, reference=rest)
+
+
+def _frame(simulator, mid, indenters):
+    load = mj.indenter_deformation(mid, indenters)
+    return simulator.deformed_frame(jax.random.PRNGKey(1), load), np.asarray(load.wrench)
+
+
+def test_two_fingertips_are_read_with_two_patches(mid, simulator, inverter):
+    # Two spherical fingertips 9 mm apart, one pressing harder and sheared, the other
+    # twisted: one patch read such loads with Fz at R2 -0.9.
+    fingertips = [
+        Indenter("sphere", -4.0, 2.0, 3.0, force=(0.08, 0.0, 0.7)),
+        Indenter("sphere", 4.0, -2.5, 3.0, force=(0.0, -0.05, 0.35), twist=0.002),
+    ]
+    frame, truth = _frame(simulator, mid, fingertips)
+    estimate = invert(inverter, frame)
+    assert Status(int(estimate.status)) in (Status.CONVERGED, Status.MAX_STEPS), Status(int(estimate.status))
+    assert int(estimate.contacts) == 2
+    # Within 8 % of each axis' range (the simulator's spherical fingertips are not the
+    # inversion's patches; each alone reads within 1 %, the pair's shear split within 7 %).
+    error = (np.asarray(estimate.wrench) - truth) / SCALE
+    assert np.all(np.abs(error) < 0.08), error
+    # The main patch is the harder-pressing fingertip; the second carries the other's load.
+    assert np.hypot(float(estimate.contact.x0) + 4.0, float(estimate.contact.y0) - 2.0) < 0.5
+    second = estimate.second_contact
+    assert np.hypot(float(second.x0) - 4.0, float(second.y0) + 2.5) < 0.5
+    assert abs(float(estimate.second_wrench[2]) - 0.35) < 0.05
+    assert np.all(np.asarray(estimate.sigma) > 0)
+    # One fingertip alone is read with one patch.
+    single, truth = _frame(simulator, mid, fingertips[:1])
+    estimate = invert(inverter, single)
+    assert int(estimate.contacts) == 1
+    assert np.all(np.isnan(np.asarray(estimate.second_contact.x0)))
+    assert np.all(np.abs((np.asarray(estimate.wrench) - truth) / SCALE) < 0.02)
