@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _device import device_summary
 
 import moirejax as mj
 from moirejax import calibrate, evaluate, heldout_ridge_r2, simulate_dataset, transfer
@@ -88,6 +89,7 @@ def main(argv=None):
             "ridge_r2": ridge_b,
         },
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        **device_summary(),
         "folder": str(root),
     }
     if args.json:

@@ -15,9 +15,9 @@ import resource
 import time
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
+from _device import device_summary
 
 import moirejax as mj
 from moirejax import (
@@ -145,7 +145,7 @@ def main(argv=None):
         "floor_median_ms": floor_median_ms,
         "ratio_to_floor": median_ms / floor_median_ms,
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "devices": [str(d) for d in jax.devices()],
+        **device_summary(),
     }
     if args.json:
         print(json.dumps(result, indent=2))
