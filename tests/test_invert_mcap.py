@@ -258,3 +258,37 @@ def test_ros2_example_imports_without_ros_and_turns_records_into_wrench_stamped(
     # No reading, no wrench: the node publishes the record's status only.
     for status in ("unexplained", "bad_frame", "source_lost"):
         assert node.wrench_message(dataclasses.replace(pressed, status=status)) is None
+
+
+def test_a_frame_read_with_two_contacts_has_a_pressure_map_of_two_patches(tmp_path):
+    folder = frames_folder(tmp_path, 2)
+    shares = ",".join(f"second_{axis}" for axis in mj.WRENCH_AXES)
+    header = CSV_HEADER.replace("radius,status", f"radius,contacts,second_x0,second_y0,second_radius,{shares},status")
+    # 0.6 N at (-4, 0) mm and 0.4 N at (4, 0) mm: moments about the origin Ty = -x Fz.
+    second = [0.0, 0.0, 0.4, 0.0, -4e-3 * 0.4, 0.0]
+    total = [0.0, 0.0, 1.0, 0.0, 4e-3 * 0.6 - 4e-3 * 0.4, 0.0]
+    sigma = ",".join(["1e-3"] * 6)
+
+    def row(name, with_share):
+        share = ",".join(map(str, second)) if with_share else ",".join(["nan"] * 6)
+        return f"{name},{','.join(map(str, total))},{sigma},-4,0,2.5,2,4,0,2.5,{share},converged,two contacts"
+
+    (tmp_path / "w.csv").write_text(header + "\n" + row("f0.png", True) + "\n" + row("f1.png", False) + "\n")
+    device = mj.preset("mid", height=256, width=256, px_per_mm=8.0)
+    with McapSink(tmp_path / "run.mcap") as sink:
+        record_inversion(sink, folder, tmp_path / "w.csv", device)
+    maps = [
+        np.frombuffer(m.ros_msg.data, "<f4").reshape(m.ros_msg.height, m.ros_msg.width)
+        for m in read(tmp_path / "run.mcap", "/moirejax/pressure")
+    ]
+    records = [json.loads(m.ros_msg.data) for m in read(tmp_path / "run.mcap", "/moirejax/record")]
+    two, old = maps
+    w = two.shape[1]
+    left, right = two[:, : w // 2].sum(), two[:, w // 2 :].sum()
+    # Each patch carries its own share of the normal force, in its own half of the image.
+    assert right / (left + right) == pytest.approx(0.4, abs=0.02)
+    assert two.min() >= 0 and two[:, : w // 2].max() > 1.2 * two[:, w // 2 :].max() > 0
+    assert records[0]["contact_area_mm2"] == pytest.approx(2 * math.pi * 2.5**2)
+    # A file written before the second patch's share was a column draws the whole load on one patch.
+    assert old[:, w // 2 :].sum() < 1e-3 * old.sum()
+    assert records[1]["contact_area_mm2"] == pytest.approx(math.pi * 2.5**2)

@@ -9,6 +9,7 @@ import pytest
 
 import moirejax as mj
 from moirejax import Contact, Indenter, invert, Inverter, Status
+from moirejax.inverse._invert_io import _rows, CSV_HEADER
 
 
 pytestmark = pytest.mark.xdist_group("second_contact")
@@ -85,9 +86,14 @@ def test_two_fingertips_are_read_with_two_patches(mid, simulator, inverter):
     assert np.hypot(float(second.x0) - 4.0, float(second.y0) + 2.5) < 0.5
     assert abs(float(estimate.second_wrench[2]) - 0.35) < 0.05
     assert np.all(np.asarray(estimate.sigma) > 0)
+    # The wrench CSV carries the second patch and its share of the wrench.
+    row = dict(zip(CSV_HEADER, _rows(["f"], jax.tree.map(lambda x: x[None], estimate), [None])[0]))
+    assert row["contacts"] == 2 and row["second_fz"] == pytest.approx(float(estimate.second_wrench[2]))
     # One fingertip alone is read with one patch.
     single, truth = _frame(simulator, mid, fingertips[:1])
     estimate = invert(inverter, single)
     assert int(estimate.contacts) == 1
     assert np.all(np.isnan(np.asarray(estimate.second_contact.x0)))
+    row = dict(zip(CSV_HEADER, _rows(["f"], jax.tree.map(lambda x: x[None], estimate), [None])[0]))
+    assert row["contacts"] == 1 and np.isnan(row["second_fz"])
     assert np.all(np.abs((np.asarray(estimate.wrench) - truth) / SCALE) < 0.02)

@@ -30,6 +30,7 @@ CSV_HEADER = (
     "second_x0",
     "second_y0",
     "second_radius",
+    *(f"second_{c}" for c in WRENCH_AXES),
     "status",
     "message",
 )
@@ -194,17 +195,21 @@ def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head
     second = estimate.second_contact
     contacts = np.asarray(estimate.contacts)
     patch += [contacts, *(np.asarray(v) for v in (second.x0, second.y0, second.radius))]
+    # The second patch's share of the wrench; NaN for a frame read with one patch.
+    second_wrench = np.where(contacts[:, None] == 2, np.asarray(estimate.second_wrench), np.nan)
     rows = []
     for i, name in enumerate(names):
         code = Status(int(status[i]))
         message = messages[i] or code.message
-        rows.append([name, *wrench[i], *sigma[i], *(v[i] for v in patch), code.name.lower(), message])
+        rows.append(
+            [name, *wrench[i], *sigma[i], *(v[i] for v in patch), *second_wrench[i], code.name.lower(), message]
+        )
     return rows
 
 
 def _failed_row(name: str, code: Status, message: str) -> list:
     nan = float("nan")
-    return [name, *([nan] * 12), nan, nan, nan, 0, nan, nan, nan, code.name.lower(), message]
+    return [name, *([nan] * 12), nan, nan, nan, 0, nan, nan, nan, *([nan] * 6), code.name.lower(), message]
 
 
 def invert_recording(

@@ -409,6 +409,19 @@ def _read_inversion(path: Path) -> list[dict[str, str]]:
         raise DataError(f"{path}: not a text CSV ({e.reason})") from None
 
 
+def _patches(row: dict[str, str], wrench: np.ndarray, path: Path, line: int) -> list[tuple[np.ndarray, tuple]]:
+    """The contact patches of a row, each `(wrench, (x0, y0, radius))`: one, or two when
+    the row was read with two and carries the second patch's share of the wrench (files
+    written before that share was a column draw their two contacts as one)."""
+    first = tuple(_number(row, c, path, line) for c in ("x0", "y0", "radius"))
+    columns = [f"second_{axis}" for axis in WRENCH_AXES]
+    if row.get("contacts") != "2" or any(row.get(c) in (None, "", "nan") for c in columns):
+        return [(wrench, first)]
+    second_wrench = np.array([_number(row, c, path, line) for c in columns])
+    second = tuple(_number(row, f"second_{c}", path, line) for c in ("x0", "y0", "radius"))
+    return [(wrench - second_wrench, first), (second_wrench, second)]
+
+
 def _number(row: dict[str, str], column: str, path: Path, line: int) -> float:
     try:
         return float(row[column])
@@ -481,7 +494,8 @@ def record_inversion(
     `in_contact`, range flags, centre of pressure). A sink with `emit_image` also gets the
     frame, and one with `emit_pressure` the pressure map of each frame whose wrench is a
     load estimate (`converged`, `max_steps`), drawn as the live loop draws it from the
-    row's wrench and contact patch. The wrench is the CSV's, so the two files agree to
+    row's wrench and contact patch (both patches, each with its share of the wrench, for
+    a row read with two). The wrench is the CSV's, so the two files agree to
     the digit. The records carry no covariance: the CSV keeps only its square-rooted
     diagonal, the `sigma_*` columns.
 
@@ -530,8 +544,8 @@ def record_inversion(
         line = i + 2  # the header is line 1
         wrench = np.array([_number(row, axis, csv_path, line) for axis in WRENCH_AXES])
         status = row["status"]
-        radius = _number(row, "radius", csv_path, line)
         has_load = status in _LOAD_STATUSES and bool(np.all(np.isfinite(wrench)))
+        patches = _patches(row, wrench, csv_path, line) if has_load else []
         record = make_record(
             stamp=stamps[i],
             frame=i,
@@ -540,15 +554,16 @@ def record_inversion(
             wrench=None if np.all(np.isnan(wrench)) else wrench,
             latency_ms=math.nan,  # offline: no capture-to-output time
             message=row["message"],
-            contact_area_mm2=math.pi * radius**2 if has_load else None,
+            contact_area_mm2=sum(math.pi * c[2] ** 2 for _, c in patches) if has_load else None,
         )
         record = records.finish(record)
         sink.emit(record)
         if image is not None and hasattr(sink, "emit_image"):
             sink.emit_image(image, record)
         if pressure_of is not None and has_load and hasattr(sink, "emit_pressure"):
-            x0, y0 = (_number(row, c, csv_path, line) for c in ("x0", "y0"))
-            contact = Contact(jnp.asarray(x0, dtype), jnp.asarray(y0, dtype), jnp.asarray(radius, dtype))
-            pressure = np.asarray(pressure_of(jnp.asarray(wrench, dtype), contact), np.float32)
+            pressure = sum(
+                np.asarray(pressure_of(jnp.asarray(w, dtype), Contact(*(jnp.asarray(v, dtype) for v in c))), np.float32)
+                for w, c in patches
+            )
             sink.emit_pressure(pressure, record)
     return stamps_from
