@@ -23,8 +23,8 @@
 #
 # 1. a **frame source** (a camera index, a video file or URL, a folder of images, or `"sim"`, a
 #    simulated sensor that needs no hardware), rectified to the device's pixel grid;
-# 2. the **GateER contact gate**, which compares the moiré fringes of each frame with an adaptive
-#    no-contact baseline and switches between *vision* mode (nothing touches; the wrench is zero
+# 2. the **GateER contact gate**, which compares the upper grating's fine fringes in each frame with
+#    an adaptive no-contact baseline and switches between *vision* mode (nothing touches; the wrench is zero
 #    and a colour probe may name what is seen through the sensor) and *tactile* mode;
 # 3. in tactile mode the **inversion** of notebook 03, warm-started from the previous frame;
 # 4. **sinks** that receive one JSON record per frame: stdout, a file (`FileSink`), UDP, an

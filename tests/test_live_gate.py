@@ -13,12 +13,13 @@ K1 = 2 * np.pi / P1 * np.array([np.cos(TILT), np.sin(TILT)])  # (col, row) rad/p
 K2 = 2 * np.pi / P2 * np.array([1.0, 0.0])
 
 
-def moire_frame(t, rng, *, touch=None, drift=0.2, noise=0.015, shadow=None):
+def moire_frame(t, rng, *, touch=None, drift=0.2, noise=0.015, shadow=None, scene=None):
     """Product of two cosine gratings under drifting illumination, with an optional touch.
 
     `touch = (phase_amplitude, col, row, sigma)`: a Gaussian phase distortion of the upper
     grating plus the brighter LED rim. `shadow = (col, row, sigma)`: a scene object seen
-    through the sensor (vision mode), a soft multiplicative shadow.
+    through the sensor (vision mode), a soft multiplicative shadow; `scene(t)`: any other
+    field of what the scene lets through, multiplying the frame.
     Illumination drifts +-`drift` over 200 frames with a changing left-right gradient; the
     moire phase creeps by 0.1 rad (thermal drift); 0.1 of background does not scale.
     """
@@ -39,6 +40,8 @@ def moire_frame(t, rng, *, touch=None, drift=0.2, noise=0.015, shadow=None):
     if shadow is not None:
         c, r, s = shadow
         image = image * (1 - 0.6 * np.exp(-((COLS - c) ** 2 + (ROWS - r) ** 2) / (2 * s * s)))
+    if scene is not None:
+        image = image * scene(t)
     image = image + rng.normal(0.0, noise, image.shape)
     return np.clip(image, 0, 1).astype(np.float32)
 
@@ -61,8 +64,9 @@ def test_drift_and_noise_never_switch():
     decisions = run(GateER(), 400)
     assert all(d.mode == "vision" for d in decisions)
     quiet = max(d.energy_ratio for d in decisions)
-    # A clear margin below the default threshold, not a near miss.
-    assert quiet < 0.5 * decisions[-1].threshold
+    # Not a near miss: the threshold is 4x the floor, and the largest quiet statistic of
+    # 400 frames of noise and drift stays under 3x it.
+    assert quiet < 0.75 * decisions[-1].threshold
 
 
 def test_scene_shadow_in_vision_mode_does_not_switch():
@@ -71,6 +75,46 @@ def test_scene_shadow_in_vision_mode_does_not_switch():
     for t in range(200):
         shadow = (t - 40.0, 64.0, 25.0)  # a soft object a bit larger than a fringe moves across
         decision = gate.update(moire_frame(t, rng, shadow=shadow, noise=0.01))
+        assert decision.mode == "vision", (t, decision)
+
+
+MOIRE = K1 - K2  # (col, row) rad/px
+
+
+def striped_object(t):
+    """An object above the pad striped at the moiré period, sliding and coming into view.
+
+    This is what fooled a gate on the moiré fringes: its stripes change the light at the
+    fringes' own frequency. Seen through the sensor it only scales the light, by up to 40 %.
+    """
+    reach = min(t / 60, 1.0)
+    envelope = np.exp(-((COLS - 20 - 0.4 * t) ** 2 + (ROWS - 64) ** 2) / (2 * 30.0**2))
+    stripes = 0.5 + 0.5 * np.cos(MOIRE[0] * COLS + MOIRE[1] * ROWS + 0.3 * t)
+    return 1 - 0.4 * reach * envelope * stripes
+
+
+def test_scene_at_the_moire_period_does_not_switch_but_a_light_touch_does():
+    """A striped object at the fringe period sliding over the view, with a 20 % drop of
+    the light, is no contact; a light touch under it is seen at once and let go within
+    2 frames, while the object keeps moving."""
+    touches = [(150, 170, (0.6, 80, 60, 8))]
+    decisions = run(GateER(), 200, touches, scene=striped_object)
+    modes = [d.mode for d in decisions]
+    assert modes[:150] == ["vision"] * 150, [t for t, m in enumerate(modes) if m == "tactile"]
+    assert all(m == "tactile" for m in modes[151:170]), modes[150:172]
+    assert modes[150] == "tactile" or modes[151] == "tactile"
+    assert all(m == "vision" for m in modes[172:])
+
+
+def test_sudden_lighting_change_does_not_switch():
+    """The exposure halves and a hard shadow edge sweeps in from one frame to the next:
+    a gain of the light, however sharp in time, is no contact."""
+    gate = GateER()
+    rng = np.random.default_rng(4)
+    for t in range(40):
+        light = 1.0 if t < 20 else 0.5 * (1 + 0.5 * np.tanh((COLS - 64) / 6.0)).astype(np.float32)
+        frame = np.clip(moire_frame(t, rng, drift=0.0, noise=0.01) * light, 0, 1)
+        decision = gate.update(frame)
         assert decision.mode == "vision", (t, decision)
 
 
@@ -93,15 +137,19 @@ def test_long_contact_does_not_leak_into_baseline():
 
 def test_explicit_wavevectors_match_automatic():
     px_per_mm = 20.0
-    moire = K1 - K2  # (col, row) rad/px -> (kx, ky) rad/mm with y up
-    wavevectors = np.array([[moire[0] * px_per_mm, -moire[1] * px_per_mm]])
-    explicit = GateER(moire_wavevectors=wavevectors, px_per_mm=px_per_mm)
+
+    def physical(k):  # (col, row) rad/px -> (kx, ky) rad/mm with y up
+        return np.array([[k[0] * px_per_mm, -k[1] * px_per_mm]])
+
+    explicit = GateER(carrier_wavevectors=physical(K1), moire_wavevectors=physical(K1 - K2), px_per_mm=px_per_mm)
     touches = [(50, 70, (1.0, 60, 70, 8))]
     assert switch_frames(run(explicit, 100, touches)) == switch_frames(run(GateER(), 100, touches)) == [50, 70]
     automatic = GateER()
     run(automatic, 5)
-    found = automatic.wavevectors_px[0] * np.sign(automatic.wavevectors_px[0][0] * moire[0])
-    np.testing.assert_allclose(found, moire, atol=2 * np.pi / W)
+    # Both gratings' carriers are found; only the upper one moves under a touch.
+    found = automatic.carriers_px * np.sign(automatic.carriers_px[:, :1])
+    for k in (K1, K2):
+        assert np.min(np.linalg.norm(found - k, axis=-1)) < 2 * np.pi / W, (found, k)
 
 
 def test_hysteresis_and_dwell_state_machine():

@@ -40,7 +40,6 @@ from ._rectify import (
 from ._run import (
     capture_reference as capture_reference,
     format_summary as format_summary,
-    GATE_ON_THRESHOLD as GATE_ON_THRESHOLD,
     make_colour_probe as make_colour_probe,
     make_gate as make_gate,
     make_tactile_processor as make_tactile_processor,

@@ -4,7 +4,7 @@
 spec: the frame source (a camera index, a video file or URL, a folder of images, or
 `"sim"` for a simulated sensor with no hardware), the no-contact reference of the unit,
 the [`Inverter`][moirejax.inverse._inversion.Inverter] wrapped by [`make_tactile_processor`][],
-the [`GateER`][] contact gate tuned to the device's moiré wavevectors, and the
+the [`GateER`][] contact gate on the device's upper-grating carriers, and the
 vision-mode colour probe behind a moiré notch filter.
 
 It is one module because it is the wiring of the live sensor: each part is a few dozen
@@ -62,16 +62,6 @@ logger = logging.getLogger("moirejax.live")
 # `fn(i) -> (wrench, contact)` for frame i, or `None` once the script is over.
 LoadScript = Callable[[int], tuple[Any, Contact] | None]
 TactileOutput = tuple[np.ndarray, np.ndarray | None, str, str, dict[str, Any]]
-
-# A centred normal press moves the fringes little (the surface mostly sinks; the glow it
-# adds is a brightness change the gate ignores): on a high-fidelity "mid" unit the energy
-# ratio is about 0.0005 at 0.05 N, 0.002 at 0.2 N and 0.012 at 1 N, under GateER's general
-# default of 0.02. The quiet floor is about 4e-5 with 1% pixel noise and 8 bits (the gate
-# raises the threshold to 3x the floor on noisier cameras), and a slow 30% illumination
-# drift with a moving gradient reaches 2.4e-4, so 4e-4 catches a centred press from about
-# 0.05 N: on the 240-frame `sequence` protocol the gate switches one frame after contact
-# onset (two on its MP4, benchmarks/live_latency.py) and one frame before release.
-GATE_ON_THRESHOLD = 0.0004
 
 # The grid of the pressure map drawn for sinks that take one (rows, columns over the field).
 PRESSURE_SHAPE = (64, 64)
@@ -179,12 +169,14 @@ def make_tactile_processor(
 
 
 def make_gate(device: Device, **kwargs: Any) -> GateER:
-    """A [`GateER`][] for rectified frames of `device`: its moiré wavevectors and resolution.
+    """A [`GateER`][] for rectified frames of `device`: its upper-grating carriers, moiré and black level.
 
-    The on threshold defaults to `GATE_ON_THRESHOLD`; other keyword arguments go to [`GateER`][].
+    The threshold follows the noise floor the gate measures; keyword arguments go to
+    [`GateER`][].
     """
-    kwargs.setdefault("on_threshold", GATE_ON_THRESHOLD)
+    kwargs.setdefault("black_level", float(device.optics.offset))
     return GateER(
+        carrier_wavevectors=np.asarray(device.apparent_upper_wavevectors(), np.float64),
         moire_wavevectors=np.asarray(device.moire_wavevectors(), np.float64),
         px_per_mm=float(device.px_per_mm),
         **kwargs,
