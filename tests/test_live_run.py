@@ -196,3 +196,23 @@ def test_wrong_sized_frames_and_missing_sources_are_reported(device, inverter, r
     # A source that fails before its first frame is reported before an inverter is built.
     with pytest.raises(ValueError, match="open_failed"):
         capture_reference(FolderSource(tmp_path / "gone"))
+
+
+def test_the_approach_aligns_on_the_cap_it_sees(device, inverter):
+    from moirejax.live import CapRig
+
+    # The green cap 3.6 mm off the sensor's axis, 0.5 mm below the pad: the robot moves
+    # sideways onto what it locates through the sensor, then descends; the first frames in
+    # contact are read against the approach's last frames, which show the cap.
+    rig = CapRig(cap_x=3.0, cap_y=-2.0, cap_rgb=(0.1, 0.7, 0.2))
+    timeline = run_cap_removal(device, cycles=1, inverter=inverter, rig=rig, max_frames=11)
+    vision = timeline.mode == "vision"
+    seen = np.isfinite(timeline.cap_seen[:, 0])
+    assert seen[0] and np.all(np.hypot(*(timeline.cap_seen - timeline.cap_offset)[seen].T) < 0.1)
+    touching = np.flatnonzero(~vision)
+    assert touching.size >= 2 and np.all(vision[: touching[0]])
+    # Aligned before it touched, and it did not move while touching.
+    assert np.hypot(*timeline.cap_offset[touching[0]]) < 0.3
+    assert np.all(timeline.cap_offset[touching] == timeline.cap_offset[touching[0]])
+    assert np.all(timeline.status[touching] == "converged")
+    assert np.all(np.abs(timeline.wrench_estimated[touching, 2] - timeline.wrench_true[touching, 2]) < 0.03)

@@ -692,8 +692,18 @@ def _cmd_cap_removal(args: argparse.Namespace) -> int:
         from ..physics import preset
 
         device = preset("mid")
-    timeline = run_cap_removal(device, cycles=args.cycles)
+    rig = None
+    if args.cap_offset is not None:
+        from ..live import CapRig
+
+        # The paper's green cap, seen through the sensor and aligned on before pressing.
+        rig = CapRig(cap_x=args.cap_offset[0], cap_y=args.cap_offset[1], cap_rgb=(0.1, 0.7, 0.2))
+    timeline = run_cap_removal(device, cycles=args.cycles, rig=rig)
     plot_timeline(args.out, timeline)
+    touches = [i for i, mode in enumerate(timeline.mode) if mode == "tactile"]
+    if args.cap_offset is not None and touches:
+        offset = math.hypot(*timeline.cap_offset[touches[0]])
+        print(f"the cap's axis was {offset:.2f} mm off the sensor's at the first touch")
     print(f"wrote {args.out}")
     return 0
 
@@ -951,6 +961,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--device", metavar="FIT.json", help="device (default: the Mid preset)")
     p.add_argument("--cycles", type=_positive_int, default=3)
+    p.add_argument(
+        "--cap-offset",
+        nargs=2,
+        type=float,
+        metavar=("X_MM", "Y_MM"),
+        help="a green cap this far off the sensor's axis, seen through it and aligned on before pressing",
+    )
     p.add_argument("--out", default="cap_removal.png", metavar="FILE.png")
     p.set_defaults(run=_cmd_cap_removal)
 

@@ -2,7 +2,9 @@ r"""The paper's incremental cap-removal cycle, closed on the inverted wrench of 
 
 A simulated "robot" presses the sensor onto a bottle cap and turns it; each cycle:
 
-1. **approach** in vision mode, descending until the gate reports contact;
+1. **approach** in vision mode: while the cap is in view off the sensor's axis, move
+   sideways onto it ([`locate`][moirejax.live.locate] on the see-through frame, at the
+   height the robot is above it), then descend until the gate reports contact;
 2. **press** to a target normal force, a proportional law on the *estimated* $F_z$;
 3. **twist**, holding $F_z$, while watching the estimated $T_z$ rise; when it stops rising
    the cap has broken free (it slips in its thread) and the cycle's turn is done;
@@ -27,14 +29,20 @@ import dataclasses
 import math
 import os
 
+import cv2
 import numpy as np
 
 from .._conventions import PAPER_RANGES
 from ..inverse import Inverter
 from ..physics import Contact, Device
+from ..simulate import scene_disc, SceneObject
 from ._run import make_gate, make_tactile_processor, SimulatedSensor
 from ._types import Real
+from ._vision import locate, SeeThrough
 
+
+# Vision-mode frames of the approach averaged into the reference of a visible cap's press.
+_REFERENCE_FRAMES = 3
 
 PHASES = ("approach", "press", "twist", "release", "return", "done")
 _PHASE_COLOURS = {
@@ -64,6 +72,15 @@ class CapRig:
     - `grip_angle`: the sensor angle at which the grip torque is zero; reset at each new
         contact and dragged along while the cap turns.
     - `cap_angle`: how far the cap has turned (rad).
+    - `cap_x`, `cap_y`: where the cap's axis is relative to the sensor's (mm, wrench frame);
+        a sideways move of the robot shifts it.
+    - `cap_diameter`: the cap's diameter (mm), as the camera sees it through the sensor.
+    - `cap_rgb`: its colour (linear RGB, e.g. the paper's green cap `(0.1, 0.7, 0.2)`);
+        `None` (the default) for a cap the camera does not see: gray frames, no alignment.
+        A visible cap pressed under the pad tints the frames the inversion reads; the press
+        is read against the approach's last frames, which show it, but during the twist
+        the estimated Fz drifts up to 0.2 N above the true one (the twist moves the fringes
+        out to the cap's edge, which the reference shows where it was).
     """
 
     depth: float = -0.5
@@ -75,6 +92,23 @@ class CapRig:
     radius: float = 4.0
     grip_angle: float = 0.0
     cap_angle: float = 0.0
+    cap_x: float = 0.0
+    cap_y: float = 0.0
+    cap_diameter: float = 14.0
+    cap_rgb: tuple[float, float, float] | None = None
+
+    def move(self, dx: Real, dy: Real) -> None:
+        """Move the robot sideways by `(dx, dy)` mm in the sensor's frame; the cap, fixed
+        in the world, shifts the other way. Nothing moves while the pad grips the cap."""
+        if self.depth <= 0:
+            self.cap_x -= float(dx)
+            self.cap_y -= float(dy)
+
+    def scene(self) -> SceneObject | None:
+        """The cap as the camera sees it through the sensor, at the robot's height above it."""
+        if self.cap_rgb is None:
+            return None
+        return scene_disc(self.cap_x, self.cap_y, self.cap_diameter, height=max(-self.depth, 0.0), rgb=self.cap_rgb)
 
     def command(self, depth: Real, angle: Real) -> None:
         """Move the robot; the cap follows through the grip if in contact."""
@@ -97,14 +131,15 @@ class CapRig:
                 self.cap_angle += turned
 
     def wrench(self) -> np.ndarray:
-        """True `[fx, fy, fz, tx, ty, tz]` (N, N·m) on the sensor."""
+        """True `[fx, fy, fz, tx, ty, tz]` (N, N·m) on the sensor, moments about its centre."""
         fz = self.k_z * max(self.depth, 0.0)
         tz = self.k_t * (self.angle - self.grip_angle) if fz > 0 else 0.0
-        return np.array([0.0, 0.0, fz, 0.0, 0.0, tz])
+        # A press off the axis: Tx = y Fz, Ty = -x Fz (mm to m).
+        return np.array([0.0, 0.0, fz, self.cap_y * fz / 1e3, -self.cap_x * fz / 1e3, tz])
 
     def __call__(self, index: int) -> tuple[np.ndarray, Contact]:
         """The load script of a [`SimulatedSensor`][]: the current load, whatever the frame."""
-        return self.wrench(), Contact(0.0, 0.0, self.radius)
+        return self.wrench(), Contact(self.cap_x, self.cap_y, self.radius)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,6 +158,9 @@ class CapController:
     - `slip_ratio`: slip when the estimated $T_z$ rises by less than this fraction of its
         largest per-frame rise so far in this twist.
     - `max_twist`: rotation after which a twist ends anyway (rad).
+    - `align_tolerance`: during the approach, the cap's located centre must be this close
+        to the sensor's axis (mm) before descending; `align_gain` (per frame) and
+        `max_align_step` (mm) set the sideways move towards it.
     """
 
     target_fz: float = 1.0
@@ -138,6 +176,9 @@ class CapController:
     min_twist_torque: float = 0.002
     slip_ratio: float = 0.3
     max_twist: float = 0.6
+    align_tolerance: float = 0.3
+    align_gain: float = 0.8
+    max_align_step: float = 2.0
 
 
 class _StateMachine:
@@ -152,12 +193,29 @@ class _StateMachine:
         self.twist_start = 0.0
         self.last_tz = 0.0
         self.max_rise = 0.0
+        self.aligning = False
 
     def _enter(self, phase: str) -> None:
         self.phase, self.settled = phase, 0
 
-    def step(self, mode: str, wrench: np.ndarray, depth: float, angle: float) -> tuple[float, float]:
-        """New `(depth, angle)` command from this frame's gate mode and estimate."""
+    def step(
+        self, mode: str, wrench: np.ndarray, depth: float, angle: float, cap: tuple[float, float] | None = None
+    ) -> tuple[float, float, tuple[float, float]]:
+        """New `(depth, angle, (dx, dy))` command from this frame's gate mode, estimate and,
+        in vision mode, where the cap was located (`None`: not seen)."""
+        depth, angle = self._step(mode, wrench, depth, angle)
+        s = self.s
+        if self.phase == "approach" and mode == "vision" and cap is not None:
+            offset = math.hypot(*cap)
+            if offset > s.align_tolerance:
+                # Sideways onto the cap before going down: hold the height this frame.
+                move = min(s.align_gain * offset, s.max_align_step) / offset
+                self.aligning = True
+                return depth - s.approach_step, angle, (cap[0] * move, cap[1] * move)
+        self.aligning = False
+        return depth, angle, (0.0, 0.0)
+
+    def _step(self, mode: str, wrench: np.ndarray, depth: float, angle: float) -> tuple[float, float]:
         s = self.s
         fz, tz = float(wrench[2]), float(wrench[5])
         usable = mode == "tactile" and math.isfinite(fz) and math.isfinite(tz)
@@ -220,6 +278,9 @@ class Timeline:
     - `wrench_estimated`: `(n, 6)` inverted wrench (N, N·m), zero in vision mode, NaN
         where the inversion gave none; `wrench_true`: `(n, 6)` the rendered load.
     - `depth` (mm), `angle` (rad), `cap_angle` (rad): the rig's state at each frame.
+    - `cap_offset`: `(n, 2)` where the cap's axis was relative to the sensor's (mm), the
+        truth; `cap_seen`: `(n, 2)` where [`locate`][moirejax.live.locate] put it in
+        vision mode (NaN where it was not seen or not looked for).
     - `target_fz` (N), `cycles` (completed).
     """
 
@@ -232,6 +293,8 @@ class Timeline:
     depth: np.ndarray
     angle: np.ndarray
     cap_angle: np.ndarray
+    cap_offset: np.ndarray
+    cap_seen: np.ndarray
     target_fz: float
     cycles: int
 
@@ -262,6 +325,10 @@ def run_cap_removal(
 
     Every step renders the rig's true load, gates the frame and, in tactile mode,
     inverts it; the state machine commands the rig from the gate mode and the *estimate*.
+    When the rig's cap is visible (`CapRig.cap_rgb`), frames are colour: in vision mode the
+    cap is located on the see-through frame at the robot's height above it, and the
+    approach moves sideways onto it before descending, as the paper's robot aligns on the
+    cap by its colour; the gate and the inversion read the frames' gray.
 
     **Arguments:**
 
@@ -285,23 +352,45 @@ def run_cap_removal(
             f"target_fz {controller.target_fz} N and slip_torque {rig.slip_torque} N*m must lie in the calibrated "
             f"range (0, {PAPER_RANGES['fz']}] N and (0, {PAPER_RANGES['tz']}] N*m"
         )
-    sensor = SimulatedSensor(device, rig, fidelity=fidelity, noise=noise)
+    visible = rig.cap_rgb is not None
+    sensor = SimulatedSensor(
+        device, rig, fidelity=fidelity, noise=noise, scene=(lambda i: rig.scene()) if visible else None
+    )
+    reference = sensor.reference_frame()
     if inverter is None:
-        inverter = Inverter(device, reference=sensor.reference_frame())
-    processor = make_tactile_processor(inverter, sensor.reference_frame())
+        inverter = Inverter(device, reference=reference)
+    processor = make_tactile_processor(inverter, reference)
     gate = make_gate(device)
+    see_through = SeeThrough(np.repeat(reference[..., None], 3, axis=-1), black_level=float(device.optics.offset))
     machine = _StateMachine(controller, cycles)
-    rows: dict[str, list] = {k: [] for k in ("mode", "phase", "status", "est", "true", "depth", "angle", "cap")}
+    untouched: list[np.ndarray] = []  # the approach's last vision-mode frames
+    names = ("mode", "phase", "status", "est", "true", "depth", "angle", "cap", "offset", "seen")
+    rows: dict[str, list] = {k: [] for k in names}
     for i in range(max_frames):
         if machine.phase == "done":
             break
         frame = sensor.frame(i)
-        mode = gate.update(frame).mode
+        if frame is None:  # a rig's script has no end; a script that has one stops the run
+            break
+        gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+        decision = gate.update(gray)
+        mode = decision.mode
+        cap = None
         if mode == "tactile":
-            wrench, _, status, *_ = processor(frame)
+            if decision.switched and visible and untouched:
+                # The cap now fills the view under the pad, and the reference frame does not
+                # show it: read the contact against the last frames before it, which do.
+                reference = np.mean(untouched, axis=0)
+                processor.rebind(Inverter(device, reference=reference, match_reference=False, register_gratings=True))
+            wrench, _, status, *_ = processor(gray)
         else:
             processor.reset()
             wrench, status = np.zeros(6), "no_contact"
+            untouched = [*untouched[-(_REFERENCE_FRAMES - 1) :], gray] if machine.phase == "approach" else []
+            if visible and machine.phase == "approach":
+                cap = _nearest_object(locate(frame, device, see_through=see_through, height=max(-rig.depth, 0.0)))
+        rows["offset"].append((rig.cap_x, rig.cap_y))
+        rows["seen"].append(cap if cap is not None else (math.nan, math.nan))
         rows["mode"].append(mode)
         rows["phase"].append(machine.phase)
         rows["status"].append(status)
@@ -310,7 +399,9 @@ def run_cap_removal(
         rows["depth"].append(rig.depth)
         rows["angle"].append(rig.angle)
         rows["cap"].append(rig.cap_angle)
-        rig.command(*machine.step(mode, wrench, rig.depth, rig.angle))
+        depth, angle, (dx, dy) = machine.step(mode, wrench, rig.depth, rig.angle, cap)
+        rig.move(dx, dy)
+        rig.command(depth, angle)
     n = len(rows["mode"])
     return Timeline(
         t=np.arange(n) / float(fps),
@@ -322,9 +413,19 @@ def run_cap_removal(
         depth=np.asarray(rows["depth"]),
         angle=np.asarray(rows["angle"]),
         cap_angle=np.asarray(rows["cap"]),
+        cap_offset=np.asarray(rows["offset"], np.float64).reshape(n, 2),
+        cap_seen=np.asarray(rows["seen"], np.float64).reshape(n, 2),
         target_fz=float(controller.target_fz),
         cycles=machine.cycle,
     )
+
+
+def _nearest_object(sighting) -> tuple[float, float] | None:
+    """Centre (mm) of the located object nearest the sensor's axis, or `None`."""
+    if not sighting.objects:
+        return None
+    nearest = min(sighting.objects, key=lambda o: math.hypot(o.x_mm, o.y_mm))
+    return (nearest.x_mm, nearest.y_mm)
 
 
 def plot_timeline(path: str | os.PathLike, timeline: Timeline) -> None:
