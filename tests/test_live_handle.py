@@ -6,6 +6,7 @@ import json
 import threading
 import time
 
+import cv2
 import equinox as eqx
 import jax.random as jr
 import numpy as np
@@ -303,6 +304,7 @@ def test_live_command_writes_filtered_named_records_and_mcap(tmp_path):
     out, mcap = tmp_path / "records.jsonl", tmp_path / "run.mcap"
     args = ["live", "--device", str(tmp_path / "unit.json"), "--max-frames", "40", "--sink", str(out)]
     args += ["--mcap", str(mcap), "--filter", "kalman", "--sensor-id", "right", "--frame-id", "right_pad"]
+    args += ["--record-frames", str(tmp_path / "session")]
     assert main(args) == 0
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert len(records) == 40 and {r["sensor_id"] for r in records} == {"right"}
@@ -312,3 +314,29 @@ def test_live_command_writes_filtered_named_records_and_mcap(tmp_path):
     assert {m.ros_msg.header.frame_id for m in read(mcap, "/moirejax/wrench")} == {"right_pad"}
     assert len(read(mcap, "/moirejax/pressure")) == len(touched)
     assert not (tmp_path / "run.mcap.part").exists()
+
+    # The recorded frames, with their capture times, are a recording `import` reads: here
+    # with a force/torque log sampled at those times (the records' own wrench), which the
+    # dataset takes frame by frame.
+    index = (tmp_path / "session" / "frames.csv").read_text().splitlines()
+    assert index[0] == "frame,t,contact" and len(index) == 41
+    rows = [line.split(",") for line in index[1:]]
+    assert [float(r[1]) for r in rows] == [r["stamp"] for r in records]
+    assert [int(r[2]) for r in rows] == [int(r["mode"] == "tactile") for r in records]
+    first = cv2.imread(str(tmp_path / "session" / "frames" / rows[0][0]), cv2.IMREAD_UNCHANGED)
+    assert first.shape == (DEVICE.height, DEVICE.width) and first.dtype == np.uint8
+    wrenches = np.array([(r["force"] or [0.0] * 3) + (r["torque"] or [0.0] * 3) for r in records])
+    ft = "t,fx,fy,fz,tx,ty,tz\n" + "".join(
+        f"{r['stamp']!r}," + ",".join(repr(float(v)) for v in w) + "\n" for r, w in zip(records, wrenches)
+    )
+    (tmp_path / "ft.csv").write_text(ft)
+    mj.import_recording(
+        tmp_path / "session" / "frames",
+        tmp_path / "session" / "frames.csv",
+        tmp_path / "unit.json",
+        tmp_path / "dataset",
+        ft_csv=tmp_path / "ft.csv",
+        progress=False,
+    )
+    dataset = mj.Dataset(tmp_path / "dataset")
+    assert len(dataset) == 40 and np.allclose(dataset.wrenches, wrenches, atol=1e-9)

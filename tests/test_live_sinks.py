@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from moirejax.live import FileSink, make_record, StreamSink, StripChart, UdpSink, VideoRecorder
+from moirejax import OutputError
+from moirejax.live import FileSink, make_record, RecordingSink, StreamSink, StripChart, UdpSink, VideoRecorder
 
 
 FIELDS = [
@@ -153,3 +154,36 @@ def test_strip_chart_is_a_no_op_without_display(monkeypatch):
     assert not chart.enabled
     chart.emit(sample())
     chart.close()
+
+
+def test_recording_sink_keeps_the_frames_exactly_and_what_its_index_lists(tmp_path):
+    rng = np.random.default_rng(0)
+    gray = (rng.integers(0, 256, (24, 32)) / 255).astype(np.float32)  # an 8-bit camera's frame in [0, 1]
+    sink = RecordingSink(tmp_path / "rec", index_every=2)
+    for i in range(3):
+        sink.emit_image(
+            gray, make_record(stamp=100.0 + i / 60, frame=i, mode="tactile" if i else "vision", status="ok")
+        )
+    # Two frames listed so far (the index is rewritten every second frame), all three on disk.
+    assert (tmp_path / "rec" / "frames.csv").read_text().splitlines()[1:] == [
+        f"000000.png,{100.0!r},0",
+        f"000001.png,{100.0 + 1 / 60!r},1",
+    ]
+    (tmp_path / "rec" / "frames").rename(tmp_path / "rec" / "gone")  # the disk goes away
+    sink.emit_image(gray, make_record(stamp=101.0, frame=3, mode="vision", status="ok"))
+    sink.close()
+    assert sink.stats == {"sent": 3, "errors": 1}
+    rows = (tmp_path / "rec" / "frames.csv").read_text().splitlines()
+    assert len(rows) == 4 and rows[3].startswith("000002.png,")
+    back = cv2.imread(str(tmp_path / "rec" / "gone" / "000002.png"), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == np.uint8 and np.array_equal(back.astype(np.float32) / 255, gray)
+
+    deep = RecordingSink(tmp_path / "deep", bit_depth=16)
+    deep.emit_image(gray, make_record(stamp=0.0, frame=0, mode="vision", status="ok"))
+    deep.close()
+    back = cv2.imread(str(tmp_path / "deep" / "frames" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == np.uint16 and np.array_equal(back // 257, (gray * 255).round().astype(np.uint16))
+    with pytest.raises(OutputError, match="not empty"):
+        RecordingSink(tmp_path / "rec")
+    with pytest.raises(ValueError, match="bit_depth"):
+        RecordingSink(tmp_path / "other", bit_depth=12)

@@ -65,7 +65,7 @@ OUTPUT_FLAGS = {
     "calibrate": ("out",),
     "evaluate": ("out",),
     "transfer": ("out",),
-    "live": ("record", "sink", "mcap"),
+    "live": ("record", "record_frames", "sink", "mcap"),
     "vision": ("restore",),
     "cap-removal": ("out",),
     "demo": ("out",),

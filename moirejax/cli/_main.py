@@ -475,6 +475,11 @@ def _cmd_live(args: argparse.Namespace) -> int:
         if spec not in ("-", "stdout") and not spec.lower().startswith("udp://"):
             check_output_file(spec, argument="sink")
     mcap = [_open_mcap(args.mcap)] if args.mcap else []
+    if args.record_frames:
+        from ..live import RecordingSink
+
+        check_output_folder(args.record_frames, argument="record_frames")
+        mcap.append(RecordingSink(args.record_frames))
     sinks = [parse_sink(spec) for spec in (args.sink or ["-"])] + mcap
     records = RecordStream(
         sensor_id=args.sensor_id,
@@ -897,6 +902,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--max-frames", type=_positive_int, help="stop after N frames")
     p.add_argument("--record", metavar="OUT.mp4", help="write an annotated video")
+    p.add_argument(
+        "--record-frames",
+        metavar="DIR",
+        help="also write the raw frames with their capture times and contact flags, a recording "
+        "`moirejax import --ft FT.csv --align` turns into a calibration dataset",
+    )
     p.add_argument("--plot", action="store_true", help="live strip chart when a display exists")
     p.add_argument("--rectification", metavar="RECT.json", help="pixel-to-mm rectification of the camera")
     p.add_argument("--reference", metavar="IMAGE", help="no-contact frame (default: the first frames of the source)")

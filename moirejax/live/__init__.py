@@ -54,6 +54,7 @@ from ._sinks import (
     FileSink as FileSink,
     make_record as make_record,
     RECORD_VERSION as RECORD_VERSION,
+    RecordingSink as RecordingSink,
     StreamSink as StreamSink,
     StripChart as StripChart,
     UdpSink as UdpSink,

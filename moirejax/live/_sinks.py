@@ -30,6 +30,7 @@ from typing import Any, IO, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
+from .._fileio import atomic_write_text, OutputError
 from ._types import Real
 
 
@@ -272,6 +273,101 @@ class UdpSink(_CountingSink):
         if self._sock is not None:
             self._sock.close()
             self._sock = None
+
+
+class RecordingSink(_CountingSink):
+    """The camera's frames with their capture times and the gate's contact flag, as a
+    recording that `moirejax import` turns into a dataset: `folder/frames/NNNNNN.png` and
+    `folder/frames.csv` with columns `frame,t,contact`.
+
+    This is how a calibration session is captured: record the frames live, log the
+    reference force/torque sensor on its own clock, then
+    `moirejax import --frames FOLDER/frames --wrench FOLDER/frames.csv --ft FT.csv --align`
+    interpolates the log to each frame's time, the clock offset estimated from the data.
+    The times are the records' capture stamps (s, the host's wall clock, which a driver on
+    the same host shares); `contact` is 1 for a frame the gate put in tactile mode. Frames are written as they come, each PNG complete before its
+    name appears (written beside it, then renamed); `frames.csv` is rewritten atomically
+    every `index_every` frames and at `close`, so an interrupted session keeps every frame
+    the index lists. A frame that cannot be written is counted in `stats["errors"]` and left
+    out of the index; the stream goes on.
+
+    **Arguments:**
+
+    - `folder`: a new or empty folder.
+    - `bit_depth`: 8 (a camera's own depth: frames in [0, 1] from 8-bit images come back
+        exactly) or 16 bits per PNG pixel.
+    - `index_every`: frames between rewrites of the index.
+    - `compression`: the PNG's zlib level, 0 to 9. 0 (the default) stores the pixels
+        unpacked, 0.26 MB a 512 x 512 frame written in about 4 ms, which keeps up with a
+        60 fps camera; level 1 made a noisy frame a fifth smaller in four times as long.
+    """
+
+    def __init__(self, folder: str | os.PathLike, *, bit_depth: int = 8, index_every: int = 60, compression: int = 0):
+        super().__init__()
+        if bit_depth not in (8, 16):
+            raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth}")
+        if index_every < 1:
+            raise ValueError(f"index_every must be at least 1, got {index_every}")
+        self.folder = os.fspath(folder)
+        self.bit_depth = bit_depth
+        self.index_every = index_every
+        if not 0 <= compression <= 9:
+            raise ValueError(f"compression must be a zlib level 0 to 9, got {compression}")
+        self.compression = compression
+        frames = os.path.join(self.folder, "frames")
+        if os.path.isdir(self.folder) and os.listdir(self.folder):
+            raise OutputError(f"{self.folder}: not empty; a recording needs a new folder")
+        try:
+            os.makedirs(frames, exist_ok=True)
+        except OSError as e:
+            raise OutputError(f"{frames}: cannot be made ({e.strerror or e})") from e
+        self._rows: list[str] = []
+        self._closed = False
+
+    def emit(self, record: WrenchRecord) -> None:
+        """Records are not kept: the frames are ([`emit_image`][RecordingSink.emit_image])."""
+
+    def emit_image(self, image: np.ndarray, record: WrenchRecord) -> None:
+        """Write the frame of `record`: gray or BGR, uint8 or float in [0, 1]."""
+        if self._closed:
+            self._failed("errors", ValueError("sink is closed"))
+            return
+        name = f"{record.frame:06d}.png"
+        path = os.path.join(self.folder, "frames", name)
+        arr = np.asarray(image)
+        if self.bit_depth == 8 and arr.dtype != np.uint8:
+            # Rounded to the nearest level and saturated: an 8-bit camera's frame comes back exactly.
+            arr = cv2.convertScaleAbs(np.asarray(arr, np.float32), alpha=255.0)
+        elif self.bit_depth == 16:
+            scale = 65535 / 255 if arr.dtype == np.uint8 else 65535.0
+            arr = np.round(np.clip(arr.astype(np.float64) * scale, 0.0, 65535.0)).astype(np.uint16)
+        try:
+            ok, encoded = cv2.imencode(".png", arr, [cv2.IMWRITE_PNG_COMPRESSION, self.compression])
+            if not ok:
+                raise ValueError(f"cannot encode a {arr.shape} {arr.dtype} frame as PNG")
+            with open(path + ".part", "wb") as f:
+                f.write(encoded.tobytes())
+            os.replace(path + ".part", path)
+        except (OSError, ValueError) as e:
+            self._failed("errors", e)
+            return
+        self._rows.append(f"{name},{record.stamp!r},{int(record.mode == 'tactile')}")
+        self.stats["sent"] += 1
+        if len(self._rows) % self.index_every == 0:
+            self._write_index()
+
+    def _write_index(self) -> None:
+        try:
+            atomic_write_text(
+                os.path.join(self.folder, "frames.csv"), "frame,t,contact\n" + "".join(r + "\n" for r in self._rows)
+            )
+        except OutputError as e:
+            self._failed("errors", e)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._write_index()
 
 
 def _as_bgr8(image: np.ndarray) -> np.ndarray:
