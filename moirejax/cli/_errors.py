@@ -65,7 +65,7 @@ OUTPUT_FLAGS = {
     "calibrate": ("out",),
     "evaluate": ("out",),
     "transfer": ("out",),
-    "live": ("record", "record_frames", "sink", "mcap"),
+    "live": ("record", "record_frames", "rerun_save", "sink", "mcap"),
     "vision": ("restore",),
     "cap-removal": ("out",),
     "demo": ("out",),

@@ -480,6 +480,12 @@ def _cmd_live(args: argparse.Namespace) -> int:
 
         check_output_folder(args.record_frames, argument="record_frames")
         mcap.append(RecordingSink(args.record_frames))
+    if args.rerun or args.rerun_save:
+        from ..live import RerunSink
+
+        if args.rerun_save:
+            check_output_file(args.rerun_save, argument="rerun_save")
+        mcap.append(RerunSink(save=args.rerun_save) if args.rerun_save else RerunSink(spawn=True))
     sinks = [parse_sink(spec) for spec in (args.sink or ["-"])] + mcap
     records = RecordStream(
         sensor_id=args.sensor_id,
@@ -908,6 +914,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="also write the raw frames with their capture times and contact flags, a recording "
         "`moirejax import --ft FT.csv --align` turns into a calibration dataset",
     )
+    p.add_argument("--rerun", action="store_true", help="show the stream in a Rerun viewer (needs moirejax[viewer])")
+    p.add_argument("--rerun-save", metavar="OUT.rrd", help="write the stream to a Rerun file (needs moirejax[viewer])")
     p.add_argument("--plot", action="store_true", help="live strip chart when a display exists")
     p.add_argument("--rectification", metavar="RECT.json", help="pixel-to-mm rectification of the camera")
     p.add_argument("--reference", metavar="IMAGE", help="no-contact frame (default: the first frames of the source)")

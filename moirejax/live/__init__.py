@@ -37,6 +37,7 @@ from ._rectify import (
     Rectification as Rectification,
     save_rectification as save_rectification,
 )
+from ._rerun import RerunSink as RerunSink
 from ._run import (
     capture_reference as capture_reference,
     format_summary as format_summary,
