@@ -24,6 +24,10 @@ if TYPE_CHECKING:
 
 # A cold solve whose cost is above this fraction of the zero-load cost tries more starts.
 _UNEXPLAINED = 0.004
+# Above the calibrated normal force the shear fallbacks grow as the normal force (in units of
+# its range) to this power: a grasp's friction carries more shear (`grasp_limits`: 0.2 N at
+# 1.2 N, about 1 N at 10 N).
+_HEAVY_SHEAR = 0.75
 
 
 def chord(problem: "Inverter", y, r, jacobian, args):
@@ -107,7 +111,7 @@ def levenberg_marquardt(
     or when the better one leaves more than `_UNEXPLAINED` of the zero-load residual
     unexplained, six more starts in turn: the contact where the fringes changed most
     ([`Inverter.fringe_change_centre`][moirejax.Inverter.fringe_change_centre]), the contact halfway to the centre, and each
-    shear direction at half its range. The second test catches a wrong basin the solver
+    shear direction at half its range (more above the calibrated normal force, `_HEAVY_SHEAR`). The second test catches a wrong basin the solver
     calls converged: on 200 mixed noise-free and noisy loads, correct fits left at most
     0.14% unexplained and two wrong ones (Fx 116% and Fy 35% of range off) 1.3-1.8%.
     A faint contact in noise also leaves much unexplained and pays for the extra starts.
@@ -128,14 +132,17 @@ def levenberg_marquardt(
     zero_cost = jnp.sum(problem._zero_residuals(args[0]) ** 2)
     fringe_centre = problem.fringe_change_centre(args[0])
     first = LoadState.from_vector(y0)
+    # Half the shear a press of this normal force can carry (`_HEAVY_SHEAR`): half the
+    # calibrated range up to the calibrated normal force, more under a grasp.
+    reach = 0.5 * jnp.maximum(first.scaled_wrench[2], 1.0) ** _HEAVY_SHEAR
     fallbacks = jnp.stack(
         [
             first.with_shear(0.0, 0.0).with_contact_at(fringe_centre[0], fringe_centre[1]).vector(),
             first.with_contact_at(0.5 * first.x0, 0.5 * first.y0).vector(),
-            first.with_shear(0.5, first.scaled_wrench[1]).vector(),
-            first.with_shear(-0.5, first.scaled_wrench[1]).vector(),
-            first.with_shear(first.scaled_wrench[0], 0.5).vector(),
-            first.with_shear(first.scaled_wrench[0], -0.5).vector(),
+            first.with_shear(reach, first.scaled_wrench[1]).vector(),
+            first.with_shear(-reach, first.scaled_wrench[1]).vector(),
+            first.with_shear(first.scaled_wrench[0], reach).vector(),
+            first.with_shear(first.scaled_wrench[0], -reach).vector(),
         ]
     )
 

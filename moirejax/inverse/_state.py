@@ -141,12 +141,13 @@ _MESSAGES = {
     Status.NO_CONTACT: "no contact detected; wrench is zero",
     Status.BAD_FRAME: (
         "frame is black, more than 5% clipped at white (reduce the exposure), or does not show this unit's "
-        "fringes; no wrench"
+        "fringes (its fringe phase disagrees with the reference's and no load explains it); no wrench"
     ),
     Status.WRONG_SIZE: "frame has the wrong size for this device; no wrench",
     Status.UNREADABLE: "frame could not be read or decoded; no wrench",
     Status.UNEXPLAINED: (
-        "in contact, but the model explains less than half of how the fringe phase changed, or only with a load "
+        "in contact, but the model explains less than half of how the fringe phase changed (less than nine "
+        "tenths beyond the calibrated normal force), or only with a load "
         "ten times its calibrated range; the wrench is the best fit and may be far off (a contact, unit, scene "
         "or camera pose the model does not describe)"
     ),
