@@ -92,27 +92,31 @@ class RerunSink(_CountingSink):
 
     def emit_image(self, image: np.ndarray, record: WrenchRecord) -> None:
         """Log the frame: gray, or BGR as the cameras deliver it (shown as RGB)."""
-        if self._closed:
-            return
-        try:
-            self._at(record)
+
+        def entity():
             arr = np.asarray(image)
             if arr.ndim == 3:
                 arr = arr[..., 2::-1]  # BGR to RGB
             if arr.dtype != np.uint8:
                 arr = (np.clip(arr.astype(np.float32), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
-            self._log("frame", self._rr.Image(np.ascontiguousarray(arr)))
-        except Exception as e:
-            self._failed("errors", e)
+            return self._rr.Image(np.ascontiguousarray(arr))
+
+        self._log_at(record, "frame", entity)
 
     def emit_pressure(self, pressure: np.ndarray, record: WrenchRecord) -> None:
         """Log the pressure map (Pa, the rectified image grid, row 0 at the top)."""
+        self._log_at(
+            record, "pressure", lambda: self._rr.Tensor(np.asarray(pressure, np.float32), dim_names=("row", "col"))
+        )
+
+    def _log_at(self, record: WrenchRecord, path: str, entity) -> None:
+        """Log `entity()` at `path` on the record's timelines; a failure is counted."""
         if self._closed:
             return
         try:
             self._at(record)
-            self._log("pressure", self._rr.Tensor(np.asarray(pressure, np.float32), dim_names=("row", "col")))
-        except Exception as e:
+            self._log(path, entity())
+        except Exception as e:  # a viewer gone away must not stop the sensor loop
             self._failed("errors", e)
 
     def close(self) -> None:
