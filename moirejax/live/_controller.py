@@ -193,7 +193,6 @@ class _StateMachine:
         self.twist_start = 0.0
         self.last_tz = 0.0
         self.max_rise = 0.0
-        self.aligning = False
 
     def _enter(self, phase: str) -> None:
         self.phase, self.settled = phase, 0
@@ -210,9 +209,7 @@ class _StateMachine:
             if offset > s.align_tolerance:
                 # Sideways onto the cap before going down: hold the height this frame.
                 move = min(s.align_gain * offset, s.max_align_step) / offset
-                self.aligning = True
                 return depth - s.approach_step, angle, (cap[0] * move, cap[1] * move)
-        self.aligning = False
         return depth, angle, (0.0, 0.0)
 
     def _step(self, mode: str, wrench: np.ndarray, depth: float, angle: float) -> tuple[float, float]:
