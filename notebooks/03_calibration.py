@@ -72,7 +72,8 @@ if SMOKE:
 BASELINE_SIZES = (10,) if SMOKE else (20, 100, 200)
 
 work = Path(tempfile.mkdtemp(prefix="moirejax-03-"))  # datasets, device files and report PNGs
-nominal = mj.preset("mid")
+# In smoke mode the camera is 256 x 256 px at 8 px/mm: the same 32 mm field at half the resolution.
+nominal = mj.preset("mid", height=256, width=256, px_per_mm=8.0) if SMOKE else mj.preset("mid")
 nominal_json = work / "mid.json"
 mj.save_device(nominal_json, nominal)
 print(f"working folder {work}")

@@ -89,7 +89,8 @@ N_POOL_B = TRANSFER_FRAMES + 2 if SMOKE else 510
 N_HELDOUT_B = 8 if SMOKE else 60
 
 work = Path(tempfile.mkdtemp(prefix="moirejax-04-"))  # datasets, device files and report PNGs
-nominal = mj.preset("mid")
+# In smoke mode the camera is 256 x 256 px at 8 px/mm: the same 32 mm field at half the resolution.
+nominal = mj.preset("mid", height=256, width=256, px_per_mm=8.0) if SMOKE else mj.preset("mid")
 nominal_json = work / "mid.json"
 mj.save_device(nominal_json, nominal)
 print(f"working folder {work}")

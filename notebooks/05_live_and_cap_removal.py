@@ -60,7 +60,8 @@ CAP_MAX_FRAMES = 60 if SMOKE else 400
 NOISE = 0.01  # white pixel noise added to the simulated frames (frame units, 0..1)
 
 work = Path(tempfile.mkdtemp(prefix="moirejax-05-"))  # the JSON-lines file and the timeline PNG
-device = mj.preset("mid")
+# In smoke mode the camera is 256 x 256 px at 8 px/mm: the same 32 mm field at half the resolution.
+device = mj.preset("mid", height=256, width=256, px_per_mm=8.0) if SMOKE else mj.preset("mid")
 print(f"working folder {work}")
 
 # %% [markdown]

@@ -29,6 +29,8 @@ from .test_live_mcap import read
 pytestmark = pytest.mark.xdist_group("invert_mcap")
 
 CORRUPT = 3  # the frame of the recording whose file is not an image
+# The camera of the other `invert` tests (tests/test_workflows.py): 256 x 256 px at 8 px/mm.
+SMALL = dict(height=256, width=256, px_per_mm=8.0)
 
 SCHEMAS = {
     "/moirejax/record": "std_msgs/msg/String",
@@ -55,15 +57,18 @@ def single_precision():
 @pytest.fixture(scope="module")
 def inverted(tmp_path_factory, single_precision):
     """`invert --mcap` on a press-twist-slide-release recording of 8 frames (60 fps, with
-    capture times), at the size and precision of the other `invert` tests."""
+    capture times), at the size, precision and bands of the other `invert` tests (the moiré
+    bands alone: this checks the files, not the accuracy)."""
     root = tmp_path_factory.mktemp("invert_mcap")
-    device = mj.preset("mid")
+    device = mj.preset("mid", **SMALL)
     mj.save_device(root / "mid.json", device)
     mj.simulate_dataset(root / "seq", device, "sequence", 8, seed=3, fidelity="model", progress=False)
     (root / "seq" / "frames" / f"{CORRUPT:06d}.png").write_bytes(b"not a png")
     argv = ["invert", "--device", str(root / "mid.json"), "--data", str(root / "seq"), "--out"]
     argv += [str(root / "w.csv"), "--mcap", str(root / "bags" / "run.mcap"), "--frame-id", "left_pad", "--quiet"]
-    code = main(argv)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("MOIREJAX_CARRIERS", "0")
+        code = main(argv)
     with open(root / "w.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     return {"code": code, "root": root, "rows": rows, "mcap": root / "bags" / "run.mcap"}
@@ -114,7 +119,7 @@ def test_frames_and_pressure_maps_of_the_recording(inverted):
     assert len(pressure) == len(loaded) > 0
     # The map's resultant is the frame's normal force (Pa over the cells' area, in N).
     msg = pressure[0].ros_msg
-    device = mj.preset("mid")
+    device = mj.preset("mid", **SMALL)
     cell_mm = device.width / msg.width / float(device.px_per_mm) * float((device.Z + device.a) / device.Z)
     p = np.frombuffer(msg.data, "<f4").reshape(msg.height, msg.width)
     assert p.sum() * (cell_mm * 1e-3) ** 2 == pytest.approx(float(rows[loaded[0]]["fz"]), rel=0.02)
@@ -233,15 +238,16 @@ def test_the_mcap_path_is_checked_before_the_inversion(no_inversion, tmp_path, c
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_ros2_example_imports_without_ros_and_turns_records_into_wrench_stamped(inverted):
+def test_ros2_example_imports_without_ros_and_turns_records_into_wrench_stamped(inverted, monkeypatch):
     spec = importlib.util.spec_from_file_location("ros2_node", ROOT / "examples" / "ros2_node.py")
     assert spec is not None and spec.loader is not None
     node = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(node)  # ROS is imported in main() only
     assert "rclpy" not in sys.modules or importlib.util.find_spec("rclpy") is not None
 
-    # The device and precision of the invert run above: its inversion is compiled already.
-    device = mj.preset("mid")
+    # The device, precision and bands of the invert run above: its inversion is compiled already.
+    device = mj.preset("mid", **SMALL)
+    monkeypatch.setenv("MOIREJAX_CARRIERS", "0")
     with mj.open_sensor(device, "sim", max_frames=8, vision=False, sensor_id="left", frame_id="left_pad") as sensor:
         records = list(sensor)
     pressed = next(r for r in records if r.status == "converged" and r.in_contact)

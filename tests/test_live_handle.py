@@ -41,10 +41,10 @@ PRESS = np.array([0.05, -0.03, 0.6, -2e-3 * 0.6, -1e-3 * 0.6, 0.0])
 # Frame indices of the session: gate warm-up, a press on the unit as it was when its
 # reference was taken (from FIRST), the drift of the upper grating (from DRIFT), a press on
 # the drifted unit (PRESSED to RELEASED), the camera unplugged (at UNPLUG, for a few grabs).
-FIRST, DRIFT, PRESSED, RELEASED, UNPLUG = 20, 60, 460, 480, 520
+FIRST, DRIFT, PRESSED, RELEASED, UNPLUG = 20, 60, 160, 180, 220
 PRESS_FRAMES = 20
 # The upper grating slides by 0.3 rad of its phase (a few micrometres, as a holder's
-# thermal expansion does), slowly enough that the gate takes it for drift.
+# thermal expansion does) over 100 frames, five times the gate's baseline memory: drift.
 DRIFT_PHASE = 0.3
 
 

@@ -47,7 +47,8 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     plot_design_maps(out_dir / "design_maps.png")
 
     n_cal, n_test = (24, 8) if smoke else (120, 40)
-    nominal = preset("mid")
+    # The smoke run keeps Mid's 32 mm field on a 256 x 256 px camera.
+    nominal = preset("mid", height=256, width=256, px_per_mm=8.0) if smoke else preset("mid")
     save_device(out_dir / "mid.json", nominal)
     print(
         f"\nsimulating a high-fidelity Mid unit: {n_cal} calibration frames (paper protocol), {n_test} held-out mixed frames"
