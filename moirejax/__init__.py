@@ -72,6 +72,8 @@ from .inverse import (
     frame_tracker as frame_tracker,
     FrameTracker as FrameTracker,
     invert as invert,
+    invert_distributed as invert_distributed,
+    invert_recording as invert_recording,
     Inverter as Inverter,
     LoadState as LoadState,
     model_grid_for as model_grid_for,

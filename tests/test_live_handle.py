@@ -3,6 +3,7 @@ a tare that removes a drift of the gratings, a camera that disappears and comes 
 output; and the record stream's filter and centre of pressure against their definitions."""
 
 import json
+import socket
 import threading
 import time
 
@@ -304,8 +305,27 @@ def test_live_command_writes_filtered_named_records_and_mcap(tmp_path):
     out, mcap = tmp_path / "records.jsonl", tmp_path / "run.mcap"
     args = ["live", "--device", str(tmp_path / "unit.json"), "--max-frames", "40", "--sink", str(out)]
     args += ["--mcap", str(mcap), "--filter", "kalman", "--sensor-id", "right", "--frame-id", "right_pad"]
-    args += ["--record-frames", str(tmp_path / "session")]
-    assert main(args) == 0
+    # A reference force/torque sensor streaming text readings over UDP while the camera runs.
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    args += ["--record-frames", str(tmp_path / "session"), "--ft", f"udp://127.0.0.1:{port}"]
+    streaming = threading.Event()
+    streaming.set()
+
+    def ft_sensor():
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            while streaming.is_set():
+                s.sendto(b"0.01,0.02,0.5,0.001,0.002,0.0003", ("127.0.0.1", port))
+                time.sleep(0.005)
+
+    sender = threading.Thread(target=ft_sensor, daemon=True)
+    sender.start()
+    try:
+        assert main(args) == 0
+    finally:
+        streaming.clear()
+        sender.join(5)
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert len(records) == 40 and {r["sensor_id"] for r in records} == {"right"}
     touched = [r for r in records if r["in_contact"] and r["status"] in ("converged", "max_steps")]
@@ -323,6 +343,10 @@ def test_live_command_writes_filtered_named_records_and_mcap(tmp_path):
     rows = [line.split(",") for line in index[1:]]
     assert [float(r[1]) for r in rows] == [r["stamp"] for r in records]
     assert [int(r[2]) for r in rows] == [int(r["mode"] == "tactile") for r in records]
+    # The F/T log beside the frames: readings stamped on arrival, on the frames' clock, over the session.
+    logged_t, logged = mj.read_ft_log(tmp_path / "session" / "ft.csv")
+    assert len(logged_t) > 10 and np.allclose(logged, [0.01, 0.02, 0.5, 0.001, 0.002, 0.0003])
+    assert logged_t[0] < records[-1]["stamp"] and logged_t[-1] > records[0]["stamp"]
     first = cv2.imread(str(tmp_path / "session" / "frames" / rows[0][0]), cv2.IMREAD_UNCHANGED)
     assert first.shape == (DEVICE.height, DEVICE.width) and first.dtype == np.uint8
     wrenches = np.array([(r["force"] or [0.0] * 3) + (r["torque"] or [0.0] * 3) for r in records])

@@ -295,14 +295,27 @@ def _open_mcap(path: str, **options):
         ) from None
 
 
+# Frames per segment of `invert --engine dask` when --segment is not given.
+DASK_SEGMENT = 256
+
+
 def _cmd_invert(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..calibration import load_calibrated
-    from ..inverse import check_source, invert_recording, Inverter
+    from ..inverse import check_source, invert_distributed, invert_recording, Inverter
     from ..live import record_inversion, RecordStream, WRENCH_STATUSES
 
     # Everything that can be checked is checked before the inversion is compiled.
+    if args.engine == "local" and (args.scheduler or args.workers != 2):
+        raise ValueError("--workers and --scheduler apply to --engine dask")
+    if args.engine == "dask":
+        if check_source(args.data) == "video":
+            raise ValueError(f"--engine dask: {args.data} is a video; import it into a dataset first (moirejax import)")
+        try:
+            import distributed  # noqa: F401
+        except ImportError:
+            raise ValueError("--engine dask needs Dask: pip install 'moirejax[cluster]'") from None
     if args.fps is not None and not args.mcap:
         raise ValueError("--fps sets the stamps of --mcap: give the MCAP file with --mcap")
     device, head = load_calibrated(args.device)
@@ -316,7 +329,28 @@ def _cmd_invert(args: argparse.Namespace) -> int:
         if reference is not None:
             print(note, file=sys.stderr)
         inverter = Inverter(device, reference=None if reference is None else np.asarray(reference))
-        counts = invert_recording(inverter, args.data, args.out, batch=args.batch, progress=not args.quiet, head=head)
+        if args.engine == "dask":
+            counts = invert_distributed(
+                inverter,
+                args.data,
+                args.out,
+                segment=args.segment or DASK_SEGMENT,
+                batch=args.batch,
+                workers=args.workers,
+                scheduler=args.scheduler,
+                head=head,
+                progress=not args.quiet,
+            )
+        else:
+            counts = invert_recording(
+                inverter,
+                args.data,
+                args.out,
+                batch=args.batch,
+                restart_every=args.segment,
+                progress=not args.quiet,
+                head=head,
+            )
         stamps = None
         if mcap is not None:
             records = RecordStream(sensor_id=args.sensor_id, frame_id=args.frame_id)
@@ -467,6 +501,8 @@ def _cmd_live(args: argparse.Namespace) -> int:
     from ..calibration import load_calibrated
     from ..live import format_summary, parse_sink, RecordStream, run_live, WrenchFilter
 
+    if args.ft and not args.record_frames:
+        raise ValueError("--ft logs a force/torque sensor beside recorded frames: give the folder with --record-frames")
     device, _ = load_calibrated(args.device)
     source = _live_source(args.source)
     if args.record:
@@ -474,12 +510,21 @@ def _cmd_live(args: argparse.Namespace) -> int:
     for spec in args.sink or []:
         if spec not in ("-", "stdout") and not spec.lower().startswith("udp://"):
             check_output_file(spec, argument="sink")
+    if args.record_frames:
+        check_output_folder(args.record_frames, argument="record_frames")
+    ft = None
+    if args.ft:
+        from ..live import open_ft_source
+
+        try:
+            ft = open_ft_source(args.ft)
+        except (ValueError, OSError) as e:
+            raise ValueError(f"--ft: {e}") from None
     mcap = [_open_mcap(args.mcap)] if args.mcap else []
     if args.record_frames:
         from ..live import RecordingSink
 
-        check_output_folder(args.record_frames, argument="record_frames")
-        mcap.append(RecordingSink(args.record_frames))
+        mcap.append(RecordingSink(args.record_frames, ft=ft))
     if args.rerun or args.rerun_save:
         from ..live import RerunSink
 
@@ -837,6 +882,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--batch", type=_positive_int, default=1, help="invert N frames at once, N >= 1 (throughput; no warm start)"
     )
+    p.add_argument(
+        "--segment",
+        type=_positive_int,
+        metavar="N",
+        help="start the stream cold every N frames (independent segments; default: one stream, or 256 with "
+        "--engine dask)",
+    )
+    p.add_argument(
+        "--engine",
+        choices=("local", "dask"),
+        default="local",
+        help="local: this process; dask: segments on the workers of a Dask cluster (needs moirejax[cluster]; "
+        "the same numbers as local with the same --segment)",
+    )
+    p.add_argument("--workers", type=_positive_int, default=2, help="worker processes of the local Dask cluster")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler (tcp://host:8786) instead")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument(
         "--mcap",
@@ -913,6 +974,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="also write the raw frames with their capture times and contact flags, a recording "
         "`moirejax import --ft FT.csv --align` turns into a calibration dataset",
+    )
+    p.add_argument(
+        "--ft",
+        metavar="SPEC",
+        help="with --record-frames, also log a reference force/torque sensor to DIR/ft.csv: udp://HOST:PORT "
+        "(text lines t,fx,fy,fz,tx,ty,tz or fx..tz) or netft://HOST[?cpf=N&cpt=N] (an ATI Net F/T box)",
     )
     p.add_argument("--rerun", action="store_true", help="show the stream in a Rerun viewer (needs moirejax[viewer])")
     p.add_argument("--rerun-save", metavar="OUT.rrd", help="write the stream to a Rerun file (needs moirejax[viewer])")

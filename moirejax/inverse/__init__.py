@@ -6,6 +6,7 @@ recordings into a wrench CSV.
 It imports `observe` and the layers below.
 """
 
+from ._distributed import invert_distributed as invert_distributed
 from ._inversion import (
     default_carriers as default_carriers,
     default_model_shape as default_model_shape,
@@ -15,6 +16,7 @@ from ._inversion import (
 from ._invert import frame_tracker as frame_tracker, FrameTracker as FrameTracker, invert as invert
 from ._invert_io import (
     check_source as check_source,
+    count_source_frames as count_source_frames,
     find_reference as find_reference,
     invert_recording as invert_recording,
     load_reference_image as load_reference_image,

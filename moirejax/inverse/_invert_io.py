@@ -72,10 +72,28 @@ def check_source(source: str | Path) -> str:
     return "video"
 
 
+def count_source_frames(source: str | Path) -> int:
+    """The number of frames of a dataset or a folder of images (a video's count is what its
+    container declares, which a truncated file does not hold: it is not counted here)."""
+    from ..data import Dataset
+
+    kind = check_source(source)
+    if kind == "dataset":
+        return len(Dataset(Path(source)))
+    if kind == "folder":
+        return len(_folder_images(Path(source)))
+    raise DataError(f"{source}: a video has no reliable frame count; import it into a dataset first (moirejax import)")
+
+
+def _folder_images(path: Path) -> list[Path]:
+    return sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
 def iter_source_frames(
-    source: str | Path, shape: tuple[int, int]
+    source: str | Path, shape: tuple[int, int], start: int = 0, stop: int | None = None
 ) -> Iterator[tuple[str, np.ndarray | None, str | None]]:
-    """Yield `(name, frame or None, error or None)` from a dataset, a video file or a folder of images.
+    """Yield `(name, frame or None, error or None)` from a dataset, a video file or a folder
+    of images: its frames `start` to `stop - 1` (default: all).
 
     A frame that cannot be read, or has the wrong size, comes back as `None` with a
     message; the iteration goes on. A video that ends before the number of frames its
@@ -90,12 +108,11 @@ def iter_source_frames(
     path = Path(source)
     if kind == "dataset":
         dataset = Dataset(path)
-        for i, frame, error in dataset.iter_frames(on_error="status"):
+        for i, frame, error in dataset.iter_frames(start, stop, on_error="status"):
             yield dataset.frame_names[i], frame, error
         return
     if kind == "folder":
-        names = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        for p in names:
+        for p in _folder_images(path)[start:stop]:
             image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             if image is None:
                 yield p.name, None, f"{p.name}: unreadable image"
@@ -108,14 +125,17 @@ def iter_source_frames(
     declared = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
     index = 0
     try:
-        while True:
+        while stop is None or index < stop:
             ok, image = capture.read()
             if not ok:
                 break
-            yield f"{index:06d}", _to_gray(image), None
+            if index >= start:
+                yield f"{index:06d}", _to_gray(image), None
             index += 1
     finally:
         capture.release()
+    if stop is not None:
+        return
     if declared > index:
         warnings.warn(
             f"{path}: read {index} of the {declared} frames the video declares; it is truncated or corrupt "
@@ -212,36 +232,21 @@ def _failed_row(name: str, code: Status, message: str) -> list:
     return [name, *([nan] * 12), nan, nan, nan, 0, nan, nan, nan, *([nan] * 6), code.name.lower(), message]
 
 
-def invert_recording(
+def invert_segment(
     inverter: Inverter,
     source: str | Path,
-    out_csv: str | Path,
+    start: int = 0,
+    stop: int | None = None,
     *,
     batch: int = 1,
-    progress: bool = True,
     head=None,
-) -> dict[str, int]:
-    """Invert every frame of `source` and write `out_csv` (atomically, at the end).
-
-    Frames are inverted as a stream ([`frame_tracker`][]: each continues from the last
-    good one), or, with `batch > 1`, in chunks of `batch` consecutive frames vectorised
-    from the previous chunk's solution (as [`invert`][] with `sequence=True`; higher throughput, the same
-    estimates to about one standard error). Bad frames give status rows, never an
-    exception. Returns the count of each status.
-
-    **Raises:** `ValueError` for `batch < 1`; [`DataError`][] for a source that cannot be
-    read; [`OutputError`][moirejax.OutputError] when `out_csv` cannot be written
-    (checked before the first frame).
-    """
-    from tqdm.auto import tqdm
-
-    if isinstance(batch, bool) or not isinstance(batch, int | np.integer) or batch < 1:
-        raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
-    check_source(source)
-    check_output_file(out_csv, argument="out_csv")
+    progress=None,
+) -> list[list]:
+    """The CSV rows of frames `start` to `stop - 1` of `source`, inverted as one stream that
+    starts cold at `start` (see [`invert_recording`][]). `progress`, if given, is called
+    with each frame's row count as it is done."""
     shape = (inverter.device.height, inverter.device.width)
     rows: list[list] = []
-    counts: dict[str, int] = {}
     track = inverter.cold_track()
     step = frame_tracker(inverter)
     pending: list[tuple[str, np.ndarray]] = []
@@ -254,24 +259,23 @@ def invert_recording(
         estimates = [with_second_contact(inverter, jnp.asarray(frame), e) for (_, frame), e in zip(pending, estimates)]
         stacked = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *estimates)
         rows.extend(_rows([name for name, _ in pending], stacked, [None] * len(pending), head))
+        if progress is not None:
+            progress(len(pending))
         pending.clear()
 
-    for name, frame, error in tqdm(
-        iter_source_frames(source, shape), desc="invert", unit="frame", disable=not progress
-    ):
+    def failed(row):
+        flush()
+        rows.append(row)
+        if progress is not None:
+            progress(1)
+
+    for name, frame, error in iter_source_frames(source, shape, start, stop):
         if frame is None:
-            flush()
-            rows.append(_failed_row(name, Status.UNREADABLE, error or "unreadable"))
+            failed(_failed_row(name, Status.UNREADABLE, error or "unreadable"))
             continue
         if frame.shape != shape:
-            flush()
-            rows.append(
-                _failed_row(
-                    name,
-                    Status.WRONG_SIZE,
-                    f"{name}: frame is {frame.shape[0]}x{frame.shape[1]}, device expects {shape[0]}x{shape[1]}",
-                )
-            )
+            message = f"{name}: frame is {frame.shape[0]}x{frame.shape[1]}, device expects {shape[0]}x{shape[1]}"
+            failed(_failed_row(name, Status.WRONG_SIZE, message))
             continue
         if batch > 1:
             pending.append((name, frame))
@@ -281,16 +285,89 @@ def invert_recording(
         estimate, track = step(frame, track)
         estimate = with_second_contact(inverter, jnp.asarray(frame), estimate)
         rows.extend(_rows([name], _expand(estimate), [None], head))
+        if progress is not None:
+            progress(1)
     flush()
-    for row in rows:
-        counts[row[-2]] = counts.get(row[-2], 0) + 1
+    return rows
+
+
+def segments(n_frames: int, restart_every: int | None) -> list[tuple[int, int]]:
+    """`(start, stop)` of each stream of a recording of `n_frames` that restarts cold every
+    `restart_every` frames (one stream when None)."""
+    if restart_every is None:
+        return [(0, n_frames)]
+    return [(k, min(k + restart_every, n_frames)) for k in range(0, n_frames, restart_every)]
+
+
+def _check_count(batch, name: str = "batch") -> None:
+    if isinstance(batch, bool) or not isinstance(batch, int | np.integer) or batch < 1:
+        raise ValueError(f"{name} must be a whole number >= 1, got {batch!r}")
+
+
+def _csv_text(rows: list[list]) -> str:
+    """The lines of the wrench CSV for rows of [`invert_segment`][], without the header."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(CSV_HEADER)
     for row in rows:
         writer.writerow([row[0], *(_fmt(v) for v in row[1:-2]), row[-2], row[-1]])
-    atomic_write_text(out_csv, buffer.getvalue())
+    return buffer.getvalue()
+
+
+def write_wrench_csv(out_csv: str | Path, rows: list[list]) -> dict[str, int]:
+    """Write the rows of [`invert_segment`][] as the wrench CSV (atomically); returns the
+    count of each status."""
+    counts: dict[str, int] = {}
+    for row in rows:
+        counts[row[-2]] = counts.get(row[-2], 0) + 1
+    atomic_write_text(out_csv, ",".join(CSV_HEADER) + "\n" + _csv_text(rows))
     return counts
+
+
+def invert_recording(
+    inverter: Inverter,
+    source: str | Path,
+    out_csv: str | Path,
+    *,
+    batch: int = 1,
+    restart_every: int | None = None,
+    progress: bool = True,
+    head=None,
+) -> dict[str, int]:
+    """Invert every frame of `source` and write `out_csv` (atomically, at the end).
+
+    Frames are inverted as a stream ([`frame_tracker`][]: each continues from the last
+    good one), or, with `batch > 1`, in chunks of `batch` consecutive frames vectorised
+    from the previous chunk's solution (as [`invert`][] with `sequence=True`; higher
+    throughput, the same estimates to about one standard error). With `restart_every`,
+    the stream starts cold again every that many frames: each such segment depends on no
+    other, which is what lets [`invert_distributed`][] hand segments to separate workers
+    and still write the same numbers as this function. Bad frames give status rows, never
+    an exception. Returns the count of each status.
+
+    **Raises:** `ValueError` for `batch < 1` or `restart_every < 1`; [`DataError`][] for a
+    source that cannot be read (or a video with `restart_every`, which needs a frame
+    count); [`OutputError`][moirejax.OutputError] when `out_csv` cannot be written
+    (checked before the first frame).
+    """
+    from tqdm.auto import tqdm
+
+    _check_count(batch)
+    if restart_every is not None:
+        _check_count(restart_every, "restart_every")
+    check_source(source)
+    check_output_file(out_csv, argument="out_csv")
+    n_frames = count_source_frames(source) if restart_every is not None else None
+    bar = tqdm(total=n_frames, desc="invert", unit="frame", disable=not progress)
+    rows: list[list] = []
+    try:
+        if n_frames is None:
+            rows = invert_segment(inverter, source, batch=batch, head=head, progress=bar.update)
+        else:
+            for start, stop in segments(n_frames, restart_every):
+                rows += invert_segment(inverter, source, start, stop, batch=batch, head=head, progress=bar.update)
+    finally:
+        bar.close()
+    return write_wrench_csv(out_csv, rows)
 
 
 def _fmt(value) -> str:

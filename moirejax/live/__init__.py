@@ -24,6 +24,14 @@ from ._controller import (
     run_cap_removal as run_cap_removal,
     Timeline as Timeline,
 )
+from ._ft import (
+    AbstractForceTorqueSource as AbstractForceTorqueSource,
+    ForceTorqueLog as ForceTorqueLog,
+    netft_counts as netft_counts,
+    NetFTSource as NetFTSource,
+    open_ft_source as open_ft_source,
+    UdpForceTorqueSource as UdpForceTorqueSource,
+)
 from ._gate import GateDecision as GateDecision, GateER as GateER
 from ._handle import open_sensor as open_sensor, SensorHandle as SensorHandle
 from ._mcap import McapSink as McapSink, record_inversion as record_inversion, WRENCH_STATUSES as WRENCH_STATUSES

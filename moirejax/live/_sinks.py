@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from .._fileio import atomic_write_text, OutputError
+from ._ft import AbstractForceTorqueSource, ForceTorqueLog
 from ._types import Real
 
 
@@ -300,9 +301,20 @@ class RecordingSink(_CountingSink):
     - `compression`: the PNG's zlib level, 0 to 9. 0 (the default) stores the pixels
         unpacked, 0.26 MB a 512 x 512 frame written in about 4 ms, which keeps up with a
         60 fps camera; level 1 made a noisy frame a fifth smaller in four times as long.
+    - `ft`: a reference force/torque sensor ([`AbstractForceTorqueSource`][]), read from
+        now until `close` into `folder/ft.csv` ([`ForceTorqueLog`][]), the log that
+        `import --ft FOLDER/ft.csv --align` aligns to the frames.
     """
 
-    def __init__(self, folder: str | os.PathLike, *, bit_depth: int = 8, index_every: int = 60, compression: int = 0):
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        *,
+        bit_depth: int = 8,
+        index_every: int = 60,
+        compression: int = 0,
+        ft: AbstractForceTorqueSource | None = None,
+    ):
         super().__init__()
         if bit_depth not in (8, 16):
             raise ValueError(f"bit_depth must be 8 or 16, got {bit_depth}")
@@ -323,6 +335,7 @@ class RecordingSink(_CountingSink):
             raise OutputError(f"{frames}: cannot be made ({e.strerror or e})") from e
         self._rows: list[str] = []
         self._closed = False
+        self.ft_log = ForceTorqueLog(os.path.join(self.folder, "ft.csv"), ft) if ft is not None else None
 
     def emit(self, record: WrenchRecord) -> None:
         """Records are not kept: the frames are ([`emit_image`][RecordingSink.emit_image])."""
@@ -367,6 +380,8 @@ class RecordingSink(_CountingSink):
     def close(self) -> None:
         if not self._closed:
             self._closed = True
+            if self.ft_log is not None:
+                self.ft_log.close()
             self._write_index()
 
 
