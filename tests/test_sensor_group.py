@@ -178,9 +178,11 @@ def group_run():
             for name, seed in (("left", 1), ("right", 2))
         }
         seen: list = []
-        group = open_sensors(specs, MOUNTS, grip_frame="gripper_base", max_frames=FRAMES)
+        group = open_sensors(specs, MOUNTS, grip_frame="gripper_base", max_frames=FRAMES, start=False)
         group.on_record(seen.append)
-        iterated = list(group)
+        records = iter(group)  # every record from here on, and none has come yet
+        group.start()
+        iterated = list(records)
         finished = group.join(60.0)
         latest = group.latest()
         group.close()

@@ -339,11 +339,13 @@ class SensorGroup:
             return dict(self._latest)
 
     def __iter__(self) -> Iterator[WrenchRecord]:
-        """Every record from now on, of every sensor and the grip, in arrival order, until
-        every sensor's stream has ended or the group closes. An iterator more than
-        `history` records behind skips the oldest ones."""
+        """Every record from now on (from the call of `iter`), of every sensor and the grip,
+        in arrival order, until every sensor's stream has ended or the group closes. An
+        iterator more than `history` records behind skips the oldest ones."""
         with self._cond:
-            next_count = self._count
+            return self._records_from(self._count)
+
+    def _records_from(self, next_count: int) -> Iterator[WrenchRecord]:
         while True:
             done = not self.running  # before the records: a loop delivers all it has before it ends
             with self._cond:
@@ -417,6 +419,7 @@ def open_sensors(
     grip_id: str = "grip",
     grip_frame: str = "gripper",
     sinks: Sequence[Sink] = (),
+    start: bool = True,
     **common: Any,
 ) -> SensorGroup:
     """Open several live sensors in this process as one [`SensorGroup`][], started.
@@ -431,6 +434,8 @@ def open_sensors(
         (`device`, `source`, `reference`, ...) for that sensor alone.
     - `mounts`: by name, the [`Mount`][] of each sensor on the gripper, for grip records.
     - `grip_id`, `grip_frame`, `sinks`: see [`SensorGroup`][].
+    - `start`: start the sensors; `False` leaves that to [`start`][SensorGroup.start] (or a
+        `with` block), for callbacks and iterators that must see the first records.
     - `common`: [`SensorHandle`][] arguments for every sensor (a spec's own win). Each
         sensor's `sensor_id` is its name and its `frame_id` defaults to `NAME_sensor`.
 
@@ -441,7 +446,9 @@ def open_sensors(
     handles: dict[str, SensorHandle] = {}
     try:
         for name, spec in specs.items():
-            arguments = dict(spec) if isinstance(spec, Mapping) else dict(zip(("device", "source"), spec))
+            arguments: dict[str, Any] = (
+                dict(spec) if isinstance(spec, Mapping) else dict(zip(("device", "source"), spec))
+            )
             if "device" not in arguments:
                 raise ValueError(f"sensor {name!r}: its spec has no device")
             arguments = {"frame_id": f"{name}_sensor", **common, **arguments, "sensor_id": name}
@@ -452,4 +459,4 @@ def open_sensors(
         for handle in handles.values():
             handle.close()
         raise
-    return group.start()
+    return group.start() if start else group
