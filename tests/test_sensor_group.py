@@ -283,6 +283,14 @@ def test_live_command_streams_two_sensors_and_the_grip_to_one_sink(tmp_path, uni
 def test_live_command_names_the_flag_of_a_bad_sensor_spec(extra, message, unit_file, capsys):
     from moirejax.cli import main
 
-    code = main(["live", *(unit_file if a == "UNIT" else a.replace("UNIT", unit_file) for a in extra)])
+    code = main(["live", *(a.replace("UNIT", unit_file) for a in extra)])
     err = capsys.readouterr().err
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_live_command_names_the_sensor_of_a_missing_unit_file(tmp_path, capsys):
+    from moirejax.cli import main
+
+    code = main(["live", "--sensor", f"left={tmp_path / 'nowhere.json'}@sim"])
+    err = capsys.readouterr().err
+    assert code == 3 and "nowhere.json" in err and "(given by --sensor left)" in err

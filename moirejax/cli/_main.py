@@ -544,7 +544,10 @@ def _live_group(args: argparse.Namespace) -> int:
     mounts = _live_mounts(args, list(sensors))
     specs = {}
     for name, (device_file, source) in sensors.items():
-        device, _ = load_calibrated(device_file)
+        try:
+            device, _ = load_calibrated(device_file)
+        except DataError as e:
+            raise DataError(f"{e} (given by --sensor {name})") from None
         specs[name] = {"device": device, "source": _live_source(source)}
         if args.filter == "kalman":
             specs[name]["filter"] = WrenchFilter(args.process_noise)
