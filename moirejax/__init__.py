@@ -82,7 +82,7 @@ from .inverse import (
     Status as Status,
     Track as Track,
 )
-from .live import open_sensor as open_sensor
+from .live import open_sensor as open_sensor, open_sensors as open_sensors
 from .observe import (
     band_model as band_model,
     BandModel as BandModel,

@@ -497,19 +497,131 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_live(args: argparse.Namespace) -> int:
-    from ..calibration import load_calibrated
-    from ..live import format_summary, parse_sink, RecordStream, run_live, WrenchFilter
+# `live` flags that belong to one sensor, refused with --sensor (each sensor is named by its spec).
+_ONE_SENSOR_FLAGS = (
+    "record",
+    "record_frames",
+    "ft",
+    "rerun",
+    "rerun_save",
+    "plot",
+    "rectification",
+    "reference",
+    "replay_fps",
+    "sensor_id",
+    "frame_id",
+)
 
-    if args.ft and not args.record_frames:
-        raise ValueError("--ft logs a force/torque sensor beside recorded frames: give the folder with --record-frames")
-    device, _ = load_calibrated(args.device)
-    source = _live_source(args.source)
-    if args.record:
-        check_output_file(args.record, argument="record")
+
+def _live_sensors(args: argparse.Namespace) -> dict[str, tuple[str, str]]:
+    """`--sensor NAME=DEVICE.json@SOURCE` (repeatable) as `{name: (device file, source)}`."""
+    for flag in ("device", "source"):
+        if getattr(args, flag) is not None:
+            raise ValueError(f"--sensor and --{flag} do not mix: give each sensor's device and source in its --sensor")
+    for dest in _ONE_SENSOR_FLAGS:
+        if getattr(args, dest) not in (None, False):
+            flag = "--" + dest.replace("_", "-")
+            raise ValueError(f"{flag} is for one sensor: drop it with --sensor (each sensor is named by its spec)")
+    sensors: dict[str, tuple[str, str]] = {}
+    for spec in args.sensor:
+        name, _, rest = spec.partition("=")
+        device, _, source = rest.partition("@")
+        if not (name.strip() and device and source):
+            raise ValueError(f"--sensor: {spec!r} is not NAME=DEVICE.json@SOURCE (e.g. left=unit_a.json@0)")
+        if name in sensors:
+            raise ValueError(f"--sensor: the name {name!r} is given twice")
+        sensors[name] = (device, source)
+    return sensors
+
+
+def _live_mounts(args: argparse.Namespace, names) -> dict:
+    """`--mount NAME=x,y,z,roll,pitch,yaw` (metres, degrees; repeatable) as `{name: Mount}`."""
+    from ..live import Mount
+
+    mounts: dict = {}
+    for spec in args.mount or []:
+        name, _, pose = spec.partition("=")
+        try:
+            values = [float(v) for v in pose.split(",")]
+        except ValueError:
+            values = []
+        if len(values) != 6 or not all(math.isfinite(v) for v in values):
+            raise ValueError(f"--mount: {spec!r} is not NAME=x,y,z,roll,pitch,yaw (metres, degrees)")
+        if name not in names:
+            raise ValueError(f"--mount: {name!r} is not a sensor (sensors: {', '.join(names)})")
+        if name in mounts:
+            raise ValueError(f"--mount: the sensor {name!r} is mounted twice")
+        mounts[name] = Mount.from_rpy(values[:3], *(math.radians(v) for v in values[3:]))
+    if "grip" in names and mounts:
+        raise ValueError("--sensor: the name 'grip' is the grip records' name: call the sensor something else")
+    if args.grip_frame is not None and not mounts:
+        raise ValueError("--grip-frame needs --mount: the grip wrench sums the mounted sensors")
+    return mounts
+
+
+def _live_sinks(args: argparse.Namespace) -> list:
+    """The sinks of `--sink` and `--mcap`, checked before any long work."""
+    from ..live import parse_sink
+
     for spec in args.sink or []:
         if spec not in ("-", "stdout") and not spec.lower().startswith("udp://"):
             check_output_file(spec, argument="sink")
+    mcap = [_open_mcap(args.mcap)] if args.mcap else []
+    return [parse_sink(spec) for spec in (args.sink or ["-"])] + mcap
+
+
+def _live_group(args: argparse.Namespace) -> int:
+    """`live --sensor ...`: every sensor on its own thread, every record to the same sinks."""
+    from ..calibration import load_calibrated
+    from ..live import format_summary, open_sensors, WrenchFilter
+
+    sensors = _live_sensors(args)
+    mounts = _live_mounts(args, list(sensors))
+    specs = {}
+    for name, (device_file, source) in sensors.items():
+        try:
+            device, _ = load_calibrated(device_file)
+        except DataError as e:
+            raise DataError(f"{e} (given by --sensor {name})") from None
+        specs[name] = {"device": device, "source": _live_source(source)}
+        if args.filter == "kalman":
+            specs[name]["filter"] = WrenchFilter(args.process_noise)
+    sinks = _live_sinks(args)
+    group = None
+    try:
+        group = open_sensors(
+            specs, mounts, grip_frame=args.grip_frame or "gripper", sinks=sinks, max_frames=args.max_frames
+        )
+        group.join()
+    finally:
+        if group is not None:
+            group.close()
+        for sink in sinks:
+            sink.close()
+    for name, handle in group.handles.items():
+        if handle.summary is not None:
+            print(f"{name}: " + format_summary(handle.summary).replace("\n", f"\n{name}: "), file=sys.stderr)
+    for error in group.errors.values():
+        raise error
+    return 0
+
+
+def _cmd_live(args: argparse.Namespace) -> int:
+    from ..calibration import load_calibrated
+    from ..live import format_summary, RecordStream, run_live, WrenchFilter
+
+    if args.sensor:
+        return _live_group(args)
+    if args.mount or args.grip_frame is not None:
+        raise ValueError(f"{'--mount' if args.mount else '--grip-frame'} needs --sensor: a grip is several sensors")
+    if args.device is None:
+        raise ValueError("live needs --device FIT.json (one sensor) or --sensor NAME=DEVICE.json@SOURCE (several)")
+    if args.ft and not args.record_frames:
+        raise ValueError("--ft logs a force/torque sensor beside recorded frames: give the folder with --record-frames")
+    device, _ = load_calibrated(args.device)
+    source = _live_source(args.source or "sim")
+    if args.record:
+        check_output_file(args.record, argument="record")
     if args.record_frames:
         check_output_folder(args.record_frames, argument="record_frames")
     ft = None
@@ -520,21 +632,20 @@ def _cmd_live(args: argparse.Namespace) -> int:
             ft = open_ft_source(args.ft)
         except (ValueError, OSError) as e:
             raise ValueError(f"--ft: {e}") from None
-    mcap = [_open_mcap(args.mcap)] if args.mcap else []
+    sinks = _live_sinks(args)
     if args.record_frames:
         from ..live import RecordingSink
 
-        mcap.append(RecordingSink(args.record_frames, ft=ft))
+        sinks.append(RecordingSink(args.record_frames, ft=ft))
     if args.rerun or args.rerun_save:
         from ..live import RerunSink
 
         if args.rerun_save:
             check_output_file(args.rerun_save, argument="rerun_save")
-        mcap.append(RerunSink(save=args.rerun_save) if args.rerun_save else RerunSink(spawn=True))
-    sinks = [parse_sink(spec) for spec in (args.sink or ["-"])] + mcap
+        sinks.append(RerunSink(save=args.rerun_save) if args.rerun_save else RerunSink(spawn=True))
     records = RecordStream(
-        sensor_id=args.sensor_id,
-        frame_id=args.frame_id,
+        sensor_id=args.sensor_id or "moirejax",
+        frame_id=args.frame_id or "moirejax_sensor",
         filter=WrenchFilter(args.process_noise) if args.filter == "kalman" else None,
     )
     try:
@@ -954,13 +1065,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(run=_cmd_transfer)
 
     p = sub.add_parser("live", help="stream wrenches from a camera, video or the simulated sensor")
-    p.add_argument("--device", required=True, metavar="FIT.json")
+    p.add_argument("--device", metavar="FIT.json", help="the unit (one sensor; required unless --sensor)")
     p.add_argument(
         "--source",
-        default="sim",
-        help="sim, a camera index, a camera's name or part of its name, serial number or path (see `moirejax "
-        "cameras`), a video file or URL, or a folder of frames",
+        help="sim (default), a camera index, a camera's name or part of its name, serial number or path (see "
+        "`moirejax cameras`), a video file or URL, or a folder of frames",
     )
+    p.add_argument(
+        "--sensor",
+        action="append",
+        metavar="NAME=DEVICE.json@SOURCE",
+        help="one of several sensors, each on its own thread, its records named NAME (SOURCE as --source takes); "
+        "repeatable, instead of --device and --source. Every record goes to the sinks; --mcap gets no frames",
+    )
+    p.add_argument(
+        "--mount",
+        action="append",
+        metavar="NAME=x,y,z,roll,pitch,yaw",
+        help="where sensor NAME's pad sits on the gripper: its origin (m) and its axes turned by roll, pitch, yaw "
+        "(degrees, about the fixed gripper axes); repeatable. Adds grip records, sensor_id grip, the wrench of the "
+        "mounted pads together in the gripper frame",
+    )
+    p.add_argument("--grip-frame", metavar="NAME", help="frame name of the grip records (default: gripper)")
     p.add_argument(
         "--sink",
         action="append",
@@ -990,10 +1116,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--replay-fps", type=float, metavar="FPS", help="play a video file at this rate, as a camera would deliver it"
     )
     p.add_argument("--mcap", metavar="OUT.mcap", help="also write ROS 2 messages (wrench, frames, pressure) to MCAP")
-    p.add_argument("--sensor-id", default="moirejax", help="the records' sensor name (default: moirejax)")
-    p.add_argument(
-        "--frame-id", default="moirejax_sensor", help="ROS frame name of the wrench (default: moirejax_sensor)"
-    )
+    p.add_argument("--sensor-id", help="the records' sensor name (default: moirejax)")
+    p.add_argument("--frame-id", help="ROS frame name of the wrench (default: moirejax_sensor)")
     p.add_argument(
         "--filter",
         choices=("none", "kalman"),

@@ -1,5 +1,6 @@
 """Live sensing: cameras by name, frame sources, rectification, the GateER contact gate, vision mode, output
-sinks (JSON lines, UDP, MCAP for ROS 2), the live loop, and the in-process sensor handle.
+sinks (JSON lines, UDP, MCAP for ROS 2), the live loop, the in-process sensor handle, and
+several sensors on one gripper.
 
 This is I/O and control code in numpy/OpenCV around the differentiable core: the wrench
 inversion plugs in as `process_tactile` of [`run_pipeline`][].
@@ -33,6 +34,13 @@ from ._ft import (
     UdpForceTorqueSource as UdpForceTorqueSource,
 )
 from ._gate import GateDecision as GateDecision, GateER as GateER
+from ._group import (
+    GRIP_UNAVAILABLE as GRIP_UNAVAILABLE,
+    grip_wrench as grip_wrench,
+    Mount as Mount,
+    open_sensors as open_sensors,
+    SensorGroup as SensorGroup,
+)
 from ._handle import open_sensor as open_sensor, SensorHandle as SensorHandle
 from ._mcap import McapSink as McapSink, record_inversion as record_inversion, WRENCH_STATUSES as WRENCH_STATUSES
 from ._pipeline import LiveSummary as LiveSummary, run_pipeline as run_pipeline

@@ -287,6 +287,16 @@ class SensorHandle:
         return self._error
 
     @property
+    def sensor_id(self) -> str:
+        """The records' sensor name."""
+        return self._records.sensor_id
+
+    @property
+    def frame_id(self) -> str:
+        """The records' ROS frame name."""
+        return self._records.frame_id
+
+    @property
     def callback_errors(self) -> int:
         """How many callback calls raised."""
         return self._callback_errors

@@ -54,7 +54,9 @@ class WrenchRecord:
     axis whose magnitude exceeds the unit's calibrated range; `centre_of_pressure_mm` is
     `(-ty / fz, tx / fz)` on the contact surface (mm), given while the normal force is
     resolved; `contact_area_mm2` is the fitted contact patch's area; `filtered` says the
-    wrench went through a filter (e.g. [`WrenchFilter`][]). `pressure` is the record's
+    wrench went through a filter (e.g. [`WrenchFilter`][]). `skew_ms`, on a record that
+    combines several sensors (a grip record of [`SensorGroup`][]), is the spread of their
+    capture times, and is written only when set. `pressure` is the record's
     pressure map in Pa (rows top to bottom, not written to JSON), for sinks that draw it.
     """
 
@@ -76,6 +78,7 @@ class WrenchRecord:
     centre_of_pressure_mm: tuple[float, float] | None = None
     contact_area_mm2: float | None = None
     filtered: bool = False
+    skew_ms: float | None = None
     pressure: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
 
     @property
@@ -96,7 +99,7 @@ class WrenchRecord:
             value = float(value)
             return value if math.isfinite(value) else None
 
-        return {
+        fields = {
             "version": RECORD_VERSION,
             "sensor_id": self.sensor_id,
             "frame_id": self.frame_id,
@@ -117,6 +120,9 @@ class WrenchRecord:
             "latency_ms": clean(self.latency_ms),
             "message": self.message,
         }
+        if self.skew_ms is not None:
+            fields["skew_ms"] = clean(self.skew_ms)
+        return fields
 
     def to_json(self) -> str:
         """The record as one line of compact JSON (no trailing newline)."""
