@@ -17,8 +17,8 @@ from moirejax.live import grip_wrench, make_record, Mount, open_sensors, Simulat
 # Two sensors compiled once for the module, on one worker.
 pytestmark = pytest.mark.xdist_group("sensor_group")
 
-# A small field (32 mm at 8 px/mm) so that each sensor compiles in seconds.
-DEVICE = mj.preset("mid", height=256, width=256, px_per_mm=8.0)
+# A small field (16 mm at 8 px/mm) so that each sensor compiles in seconds.
+DEVICE = mj.preset("mid", height=128, width=128, px_per_mm=8.0)
 FRAMES = 12
 
 # A parallel gripper: z_g the approach direction, the fingers closing along y_g, the left

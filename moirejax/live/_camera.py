@@ -642,7 +642,7 @@ def _enumerate_cameras() -> list[Any]:
     and `backend` (the `cv2.CAP_*` id).
     """
     try:
-        import cv2_enumerate_cameras as enumeration
+        import cv2_enumerate_cameras as enumeration  # pyright: ignore[reportMissingImports] (optional extra)
     except ImportError as e:
         raise ImportError(f"finding cameras by name needs the `cameras` extra: {CAMERAS_EXTRA}") from e
     found: list[Any] = []
