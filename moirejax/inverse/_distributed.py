@@ -138,8 +138,8 @@ def invert_distributed(
     done = _resume(parts, plan)
     todo = [(start, stop) for start, stop in segments(n_frames, segment) if start not in done]
 
-    bar = tqdm(total=n_frames, initial=sum(d["frames"] for d in done.values()), desc="invert", unit="frame")
-    bar.disable = not progress
+    initial = sum(d["frames"] for d in done.values())
+    bar = tqdm(total=n_frames, initial=initial, desc="invert", unit="frame", disable=not progress)
     if todo:
         cluster = None
         if scheduler is None:

@@ -1,4 +1,4 @@
-"""Inverting a recording on a local Dask cluster: `python benchmarks/distributed.py --json`.
+"""Inverting a recording on a local Dask cluster: `python benchmarks/cluster_invert.py --json`.
 
 A `sequence` recording of `--frames` frames of the Mid design (`model` fidelity, 1 % noise
 added by the simulator's camera) is inverted in segments of `--segment` frames: in this
