@@ -39,7 +39,7 @@ from jaxtyping import Float
 
 from ..physics import Device
 from ._camera import AbstractFrameSource
-from ._handle import SensorHandle
+from ._handle import call_each, SensorHandle
 from ._pipeline import NO_CONTACT, VISION_ERROR
 from ._records import LOAD_STATUSES
 from ._sinks import make_record, Sink, WrenchRecord
@@ -398,15 +398,7 @@ class SensorGroup:
             except Exception as e:
                 self._output_errors += 1
                 logger.warning("sink %s failed: %s", type(sink).__name__, e)
-        for callback in callbacks:
-            try:
-                callback(record)
-            except Exception as e:
-                self._callback_errors += 1
-                if self._callback_errors == 1:
-                    logger.warning(
-                        "a group record callback failed: %s: %s (further failures are counted)", type(e).__name__, e
-                    )
+        self._callback_errors = call_each(callbacks, record, self._callback_errors)
 
 
 SensorSpec = tuple[Device, str | AbstractFrameSource] | Mapping[str, Any]

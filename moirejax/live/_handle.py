@@ -58,6 +58,19 @@ logger = logging.getLogger("moirejax.live")
 RecordCallback = Callable[[WrenchRecord], None]
 
 
+def call_each(callbacks: Sequence[RecordCallback], record: WrenchRecord, failed: int) -> int:
+    """Give `record` to every callback; a callback that raises does not stop the others or
+    the stream. Returns `failed` plus this record's failures; the first ever is logged."""
+    for callback in callbacks:
+        try:
+            callback(record)
+        except Exception as e:
+            failed += 1
+            if failed == 1:
+                logger.warning("a record callback failed: %s: %s (further failures are counted)", type(e).__name__, e)
+    return failed
+
+
 class SensorHandle:
     """A live sensor running on a background thread; made by [`open_sensor`][].
 
@@ -259,15 +272,7 @@ class SensorHandle:
             self._history.append(record)
             callbacks = list(self._callbacks)
             self._lock.notify_all()
-        for callback in callbacks:
-            try:
-                callback(record)
-            except Exception as e:
-                self._callback_errors += 1
-                if self._callback_errors == 1:
-                    logger.warning(
-                        "a record callback failed: %s: %s (further failures are counted)", type(e).__name__, e
-                    )
+        self._callback_errors = call_each(callbacks, record, self._callback_errors)
 
     # -- state ---------------------------------------------------------------------------
 
