@@ -1,8 +1,9 @@
-"""Accuracy on indenters the inversion does not model: flat punches, rings, lines, square punches, two fingertips.
+"""Accuracy on indenters other than a sphere: flat punches, rings, lines, square punches, two fingertips.
 
     python benchmarks/contact_shapes.py [--frames 20] [--layout crossed] [--fidelity high] [--max-force 1.2] [--json]
 
-The inversion assumes one Hertz patch per frame. This renders loads of each contact family of
+The inversion reads one round patch per frame (or two), whose pressure lies between a
+sphere's and a flat punch's. This renders loads of each contact family of
 `moirejax.random_indenters` (inside the paper's calibrated ranges, or grasp loads up to
 `--max-force` newtons) through the simulator's
 own mechanics of that indenter, with the `high`-fidelity camera (binary gratings, PSF,

@@ -40,27 +40,28 @@ def test_a_sheared_grasp_press_is_read_from_a_cold_start(unit):
     # fallbacks at half the calibrated shear range (0.1 N) ended in a wrong basin reported
     # `converged`: Fy 2.9 ranges (0.58 N) off, 4.7% of the phase change left. Fallbacks
     # scaled to what a press this hard can carry find the right one.
+    # With the contact's flatness among the unknowns the shear's standard error at this load
+    # is 0.055 N (0.27 of its calibrated range); the sphere stays rounded.
     estimate, truth = _read(unit, mj.Indenter("sphere", 1.5, -1.0, 5.0, force=(0.5, -0.3, 6.0), twist=0.02))
     assert Status(int(estimate.status)) == Status.CONVERGED
     error = (np.asarray(estimate.wrench) - truth) / WRENCH_SCALE
-    # Shear within 0.4 of its calibrated range (0.08 N, 8% of a grasp's 1 N), the rest within 0.1.
-    assert np.all(np.abs(error) < [0.4, 0.4, 0.1, 0.1, 0.1, 0.1]), error
+    # Shear within 0.6 of its calibrated range (0.12 N, 12% of a grasp's 1 N), the rest within 0.1.
+    assert np.all(np.abs(error) < [0.6, 0.6, 0.1, 0.1, 0.1, 0.1]), error
     assert float(estimate.misfit) < 0.01
+    assert abs(float(estimate.contact.flatness)) < 0.3
     assert np.all(np.abs(np.asarray(estimate.wrench) - truth) < 3 * np.asarray(estimate.sigma))
 
 
-def test_a_grasp_press_the_patch_does_not_describe_is_flagged_or_near(unit):
-    # A flat punch at 8 N: the round patch explains it only roughly (4.5% of the phase change
-    # left, against 0.1-0.3% for spheres). The estimate must be flagged, or within a quarter
-    # of what a grasp may carry on each axis (`grasp_limits(10)`: 1 N of shear, 10 N, 0.04 N*m
-    # of tilt on a contact 4 mm off the centre, 0.035 N*m of twist). It is read converged,
-    # Fz 1.6 N low and Tz 0.007 N*m off; its interval covers Fz but not Tz (13 standard
-    # errors), which the patch's twist does not describe at a punch's edge.
+def test_a_flat_grasp_press_is_read_with_a_flat_pressure(unit):
+    # A flat punch at 8 N. A rounded patch explained it only roughly (4.5% of the phase change
+    # left, against 0.1-0.3% for spheres) and read Fz 1.6 N low and Tz 0.007 N*m off, outside
+    # its interval. With the contact's flatness fitted the pressure reaches the punch's edge:
+    # 0.2% left, every axis within its interval.
     estimate, truth = _read(unit, mj.Indenter("flat", 0.5, 2.0, 5.0, force=(-0.5, -0.7, 8.0), twist=-0.015))
-    status = Status(int(estimate.status))
-    assert status in (Status.CONVERGED, Status.MAX_STEPS, Status.UNEXPLAINED)
-    if status == Status.CONVERGED:
-        shear, twist = mj.grasp_limits(10.0)
-        limits = np.array([shear, shear, 10.0, 0.04, 0.04, twist])
-        error = np.abs(np.asarray(estimate.wrench) - truth) / limits
-        assert np.all(error < 0.25), error
+    assert Status(int(estimate.status)) == Status.CONVERGED
+    assert float(estimate.contact.flatness) > 0.7
+    assert float(estimate.contact.radius) == pytest.approx(5.0, abs=0.3)
+    assert float(estimate.misfit) < 0.01
+    error = (np.asarray(estimate.wrench) - truth) / WRENCH_SCALE
+    assert np.all(np.abs(error) < [0.4, 0.4, 0.2, 0.1, 0.1, 0.1]), error
+    assert np.all(np.abs(np.asarray(estimate.wrench) - truth) < 3 * np.asarray(estimate.sigma))

@@ -279,7 +279,8 @@ inverter = mj.Inverter(mid, reference=render_frame(mid, jnp.zeros(6), Contact())
 observed = jax.lax.map(inverter.observe, frames)
 start = latents_from_wrench(wrenches, jnp.float32)
 start = mj.LoadState(
-    start.scaled_wrench, start.x0 + 0.8, start.y0 - 0.8, jnp.log(jnp.asarray([2.2, 3.2, 3.2])), start.log_exposure
+    start.scaled_wrench, start.x0 + 0.8, start.y0 - 0.8, jnp.log(jnp.asarray([2.2, 3.2, 3.2])), start.flatness,
+    start.log_exposure,
 )
 recipe = load_recipe("unit")
 problem = _Problem(inverter.phase_only(), recipe.free, recipe.log)

@@ -170,7 +170,12 @@ def latents_from_wrench(wrench: np.ndarray, dtype=None) -> LoadState:
     rest = LoadState.at_rest(dtype=scaled.dtype)
     full = lambda v: jnp.full(len(wrench), v, scaled.dtype)  # noqa: E731
     return LoadState(
-        scaled, jnp.asarray(x0, scaled.dtype), jnp.asarray(y0, scaled.dtype), full(rest.log_radius), full(0.0)
+        scaled,
+        jnp.asarray(x0, scaled.dtype),
+        jnp.asarray(y0, scaled.dtype),
+        full(rest.log_radius),
+        full(0.0),
+        full(0.0),
     )
 
 

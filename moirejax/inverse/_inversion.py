@@ -228,6 +228,7 @@ class Inverter(eqx.Module):
     unit_phase_noise: Float[Array, "families m n"]
     reference_noise: Float[Array, ""]
     fitted_light: Bool[Array, ""]
+    fitted_flatness: Bool[Array, ""]
     model_shape: tuple[int, int] = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
     rtol: float = eqx.field(static=True)
@@ -279,6 +280,7 @@ class Inverter(eqx.Module):
         self.contact_threshold = contact_threshold
         self.brightness = bool(brightness)
         self.fitted_light = jnp.asarray(False)
+        self.fitted_flatness = jnp.asarray(True)
         self.chord_steps = chord_steps
         self.chord_tolerance = chord_tolerance
         sets = device.n_sets
@@ -388,7 +390,11 @@ class Inverter(eqx.Module):
     def _predict(self, y) -> FringeFields:
         # Observed fields refer to the reference frame's wavevectors (`observe`), as the model does.
         state = LoadState.from_vector(y)
-        return self.model(state.wrench, state.contact, state.exposure)
+        contact = state.contact
+        # A solve that holds the contact's pressure rounded (the first stages of a cold solve,
+        # `solve_cold`) sees no flatness: its coordinate keeps its start.
+        contact = eqx.tree_at(lambda c: c.flatness, contact, jnp.where(self.fitted_flatness, contact.flatness, 0.0))
+        return self.model(state.wrench, contact, state.exposure)
 
     def _unit_noise_residuals(self, samples: int = 48) -> Float[Array, "samples n"]:
         """Data residuals that unit white pixel noise alone produces, `samples` draws.
@@ -529,23 +535,27 @@ class Inverter(eqx.Module):
             / _TILT_PRIOR_NMM
         )
         radius = state.radius_misfit()
+        flatness = state.flatness_misfit()
         exposure = state.log_exposure / _EXPOSURE_PRIOR
         # Priors are in units of the data noise so their weight does not depend on it.
-        return jnp.concatenate([tilt, radius[None], state.scaled_wrench / _WRENCH_PRIOR, exposure[None]]) * noise
+        return (
+            jnp.concatenate([tilt, radius[None], flatness[None], state.scaled_wrench / _WRENCH_PRIOR, exposure[None]])
+            * noise
+        )
 
     def residuals(self, y, args):
         """Whitened data residuals followed by the prior residuals (optimistix signature)."""
         observed, noise = args
         return jnp.concatenate([self._data_residuals(y, observed), self._prior_residuals(y, noise)])
 
-    def _wrench_rows(self, dtype) -> Float[Array, "6 10"]:
+    def _wrench_rows(self, dtype) -> Float[Array, "6 11"]:
         # The scaled wrench among the solvers' coordinates, as the rows of a linear map.
         return jnp.eye(6, N_UNKNOWNS, dtype=dtype)
 
     def _summary(self, y) -> tuple[LoadState, Contact, Float[Array, "6"]]:
         # The state an estimate reports, its second contact (none) and that one's wrench.
         nan = jnp.full((), jnp.nan, y.dtype)
-        return LoadState.from_vector(y), Contact(nan, nan, nan), jnp.zeros(6, y.dtype)
+        return LoadState.from_vector(y), Contact(nan, nan, nan, nan), jnp.zeros(6, y.dtype)
 
     def observe(self, frame: Float[Array, "h w"]) -> FringeFields:
         """Demodulate a frame, normalised at the reference frame's wavevectors."""
@@ -632,7 +642,7 @@ class Inverter(eqx.Module):
         zero = jnp.zeros((), excess.dtype)
         moment = fz / NMM_PER_NM
         scaled = jnp.stack([zero, zero, fz / scale[2], y0 * moment / scale[3], -x0 * moment / scale[4], zero])
-        return LoadState(scaled, x0, y0, jnp.log(jnp.asarray(TYPICAL_RADIUS, excess.dtype)), zero)
+        return LoadState(scaled, x0, y0, jnp.log(jnp.asarray(TYPICAL_RADIUS, excess.dtype)), zero, zero)
 
     def fringe_change_centre(self, observed: FringeFields) -> Float[Array, "2"]:
         """Where the fringes changed most from the reference: the centroid (mm, contact

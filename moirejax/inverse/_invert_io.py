@@ -26,6 +26,7 @@ CSV_HEADER = (
     "x0",
     "y0",
     "radius",
+    "flatness",
     "contacts",
     "second_x0",
     "second_y0",
@@ -211,7 +212,8 @@ def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head
             wrench[ok] = head.correct(wrench[ok], np.asarray(c.x0)[ok], np.asarray(c.y0)[ok], np.asarray(c.radius)[ok])
     sigma = np.asarray(estimate.sigma)
     status = np.asarray(estimate.status)
-    patch = [np.asarray(v) for v in (estimate.contact.x0, estimate.contact.y0, estimate.contact.radius)]
+    c = estimate.contact
+    patch = [np.asarray(v) for v in (c.x0, c.y0, c.radius, c.flatness)]
     second = estimate.second_contact
     contacts = np.asarray(estimate.contacts)
     patch += [contacts, *(np.asarray(v) for v in (second.x0, second.y0, second.radius))]
@@ -229,7 +231,7 @@ def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head
 
 def _failed_row(name: str, code: Status, message: str) -> list:
     nan = float("nan")
-    return [name, *([nan] * 12), nan, nan, nan, 0, nan, nan, nan, *([nan] * 6), code.name.lower(), message]
+    return [name, *([nan] * 12), nan, nan, nan, nan, 0, nan, nan, nan, *([nan] * 6), code.name.lower(), message]
 
 
 def invert_segment(

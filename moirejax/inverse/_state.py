@@ -20,11 +20,17 @@ from ..physics import Contact
 # the centre of the prior on the radius, whose width is RADIUS_PRIOR_WIDTH in log radius.
 TYPICAL_RADIUS = 3.5
 RADIUS_PRIOR_WIDTH = 0.6
+# The contact's flatness (`Contact.flatness`) has a prior centred on a rounded indenter's 0,
+# this wide: a flat face (1) is one width away. A light load barely shows the pressure's
+# shape, and the prior then keeps it rounded.
+FLATNESS_PRIOR_WIDTH = 1.0
+_FLATNESS_WALL = 30.0
 # How many unknowns a frame has, and where the scaled wrench sits among the solvers'
 # coordinates (`LoadState.vector`).
-N_UNKNOWNS = 10
-# The problem's prior residuals (`Inverter`): the tilt (2), the radius (1), the wrench (6) and the exposure (1).
-N_PRIORS = 10
+N_UNKNOWNS = 11
+# The problem's prior residuals (`Inverter`): the tilt (2), the radius (1), the flatness (1),
+# the wrench (6) and the exposure (1); the exposure's comes last.
+N_PRIORS = 11
 WRENCH_COORDINATES = slice(0, 6)
 
 
@@ -36,6 +42,8 @@ class LoadState(eqx.Module):
       ([`PAPER_RANGES`][moirejax.PAPER_RANGES]), so that every axis weighs alike in a solve.
     - `x0`, `y0`: the contact's centre on the contact surface, mm.
     - `log_radius`: the log of the contact radius (mm).
+    - `flatness`: how flat the pressure is across the contact, from a sphere's (0) to a flat
+      punch's (1) ([`Contact`][moirejax.Contact]).
     - `log_exposure`: the log of the frame's exposure factor against the device's.
 
     [`Estimate.state`][moirejax.Estimate] is one; pass it as `init` to warm-start the next
@@ -47,13 +55,14 @@ class LoadState(eqx.Module):
     x0: Float[Array, "*b"]
     y0: Float[Array, "*b"]
     log_radius: Float[Array, "*b"]
+    flatness: Float[Array, "*b"]
     log_exposure: Float[Array, "*b"]
 
     @classmethod
     def at_rest(cls, x0: float = 0.0, y0: float = 0.0, radius: float = TYPICAL_RADIUS, dtype=float) -> "LoadState":
         """No load, a contact guess at `(x0, y0)` of `radius` mm, the device's exposure."""
         scalar = lambda v: jnp.asarray(v, dtype)  # noqa: E731
-        return cls(jnp.zeros(6, dtype), scalar(x0), scalar(y0), scalar(math.log(radius)), scalar(0.0))
+        return cls(jnp.zeros(6, dtype), scalar(x0), scalar(y0), scalar(math.log(radius)), scalar(0.0), scalar(0.0))
 
     @classmethod
     def from_load(
@@ -67,6 +76,7 @@ class LoadState(eqx.Module):
             jnp.asarray(contact.x0, dtype),
             jnp.asarray(contact.y0, dtype),
             jnp.log(jnp.asarray(contact.radius, dtype)),
+            jnp.asarray(contact.flatness, dtype),
             jnp.log(jnp.asarray(exposure, dtype)),
         )
 
@@ -77,7 +87,7 @@ class LoadState(eqx.Module):
 
     @property
     def contact(self) -> Contact:
-        return Contact(x0=self.x0, y0=self.y0, radius=jnp.exp(self.log_radius))
+        return Contact(x0=self.x0, y0=self.y0, radius=jnp.exp(self.log_radius), flatness=self.flatness)
 
     @property
     def exposure(self) -> Float[Array, "*b"]:
@@ -87,6 +97,13 @@ class LoadState(eqx.Module):
         """How far the contact radius is from a typical indenter's, in widths of its prior:
         at light load the fringes barely see the radius, and this keeps it from running off."""
         return (self.log_radius - math.log(TYPICAL_RADIUS)) / RADIUS_PRIOR_WIDTH
+
+    def flatness_misfit(self) -> Float[Array, "*b"]:
+        """How far the pressure's shape is from a rounded indenter's, in widths of its prior,
+        with a steep wall outside the shapes between a sphere and a flat punch (a little
+        below 0 is allowed: the flatness of a sphere's contact scatters about 0)."""
+        wall = jnp.maximum(self.flatness - 1.0, 0.0) - jnp.maximum(-0.25 - self.flatness, 0.0)
+        return (self.flatness + _FLATNESS_WALL * wall) / FLATNESS_PRIOR_WIDTH
 
     def unloaded(self) -> "LoadState":
         """This state with no load: the contact guess and exposure kept."""
@@ -103,18 +120,18 @@ class LoadState(eqx.Module):
             lambda s: (s.x0, s.y0), self, (jnp.asarray(x0, self.x0.dtype), jnp.asarray(y0, self.y0.dtype))
         )
 
-    def vector(self) -> Float[Array, "*b 10"]:
-        """The solvers' coordinates: the scaled wrench, the contact centre, the log radius and
-        the log exposure, in that order."""
-        tail = jnp.stack([self.x0, self.y0, self.log_radius, self.log_exposure], axis=-1)
+    def vector(self) -> Float[Array, "*b 11"]:
+        """The solvers' coordinates: the scaled wrench, the contact centre, the log radius, the
+        flatness and the log exposure, in that order (the exposure last: two contacts share it)."""
+        tail = jnp.stack([self.x0, self.y0, self.log_radius, self.flatness, self.log_exposure], axis=-1)
         return jnp.concatenate([self.scaled_wrench, tail], axis=-1)
 
     @classmethod
-    def from_vector(cls, y: Float[Array, "*b 10"]) -> "LoadState":
+    def from_vector(cls, y: Float[Array, "*b 11"]) -> "LoadState":
         """The state whose [`vector`][moirejax.LoadState.vector] is `y`."""
         if y.shape[-1] != N_UNKNOWNS:
             raise ValueError(f"a load state has {N_UNKNOWNS} coordinates, got shape {y.shape}")
-        return cls(y[..., WRENCH_COORDINATES], y[..., 6], y[..., 7], y[..., 8], y[..., 9])
+        return cls(y[..., WRENCH_COORDINATES], y[..., 6], y[..., 7], y[..., 8], y[..., 9], y[..., 10])
 
 
 class Status(enum.IntEnum):
@@ -201,6 +218,6 @@ class Track(eqx.Module):
     contact. Make the first one with [`Inverter.cold_track`][]."""
 
     state: LoadState
-    jacobian: Float[Array, "n 10"]
+    jacobian: Float[Array, "n 11"]
     change: Float[Array, " n"]
     valid: Bool[Array, ""]

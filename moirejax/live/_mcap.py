@@ -410,15 +410,17 @@ def _read_inversion(path: Path) -> list[dict[str, str]]:
 
 
 def _patches(row: dict[str, str], wrench: np.ndarray, path: Path, line: int) -> list[tuple[np.ndarray, tuple]]:
-    """The contact patches of a row, each `(wrench, (x0, y0, radius))`: one, or two when
-    the row was read with two and carries the second patch's share of the wrench (files
-    written before that share was a column draw their two contacts as one)."""
-    first = tuple(_number(row, c, path, line) for c in ("x0", "y0", "radius"))
+    """The contact patches of a row, each `(wrench, (x0, y0, radius, flatness))`: one, or two
+    when the row was read with two and carries the second patch's share of the wrench (files
+    written before that share was a column draw their two contacts as one; files written
+    before the flatness was a column have round patches)."""
+    flatness = _number(row, "flatness", path, line) if row.get("flatness") not in (None, "", "nan") else 0.0
+    first = (*(_number(row, c, path, line) for c in ("x0", "y0", "radius")), flatness)
     columns = [f"second_{axis}" for axis in WRENCH_AXES]
     if row.get("contacts") != "2" or any(row.get(c) in (None, "", "nan") for c in columns):
         return [(wrench, first)]
     second_wrench = np.array([_number(row, c, path, line) for c in columns])
-    second = tuple(_number(row, f"second_{c}", path, line) for c in ("x0", "y0", "radius"))
+    second = (*(_number(row, f"second_{c}", path, line) for c in ("x0", "y0", "radius")), 0.0)
     return [(wrench - second_wrench, first), (second_wrench, second)]
 
 

@@ -1,9 +1,13 @@
 r"""Contact loads: from a wrench and latent contact variables to surface traction fields.
 
-A contact is a patch of radius $r$ centred at $(x_0, y_0)$ on the contact surface. The
-normal pressure has a Hertz-like profile $H \propto \sqrt{1 - \rho^2/r^2}$ (smoothed at the
-edge so that everything stays differentiable in $r$); shear and torsional tractions
-use the same patch. Each field is a combination of three basis fields whose
+A contact is a patch of radius $r$ centred at $(x_0, y_0)$ on the contact surface. Its
+profile $H$ blends the two classical pressures of a rigid indenter on a soft half-space,
+each normalised to a unit resultant: a sphere's (Hertz, $\sqrt{1 - \rho^2/r^2}$, zero at
+the edge) and a flat punch's (Boussinesq, $1/\sqrt{1 - \rho^2/r^2}$, singular at the edge),
+in the proportion $1 - f$ to $f$, where $f$ is the contact's flatness. A rounded
+fingertip is $f = 0$; a flat face pressed square is $f = 1$. The sampled profile is
+smoothed at the edge so that everything stays differentiable in $r$; shear and torsional
+tractions use the same patch. Each field is a combination of three basis fields whose
 coefficients are solved on the grid so that the discrete resultant about the origin
 equals the requested wrench exactly, not just in the continuum limit:
 
@@ -35,6 +39,9 @@ from ._fourier import wavenumber_grid
 
 # Sharpness of the smoothed Hertz edge, in units of the normalised gap 1 - rho^2/r^2.
 _EDGE_SHARPNESS = 20.0
+# The sampled punch profile 1/sqrt(g) becomes sqrt(g)/(g + this), which peaks at
+# 1/(2 sqrt(this)) = 2.9 at the edge instead of diverging.
+_PUNCH_EDGE = 0.03
 # Terms of the Hertz transform's series (see `_hertz_transform`).
 _HERTZ_SERIES_TERMS = 10
 
@@ -46,11 +53,14 @@ class Contact(eqx.Module):
 
     - `x0`, `y0`: centre of the contact patch on the contact surface (mm, wrench frame).
     - `radius`: contact radius (mm).
+    - `flatness`: the share of the load carried with a flat punch's pressure, the rest with
+      a sphere's: 0 for a rounded indenter, 1 for a flat one (see the module's text).
     """
 
     x0: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
     y0: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
     radius: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
+    flatness: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
 
 
 class SurfaceGrid(eqx.Module):
@@ -102,11 +112,17 @@ def surface_grid(
 
 
 def contact_profile(contact: Contact, grid: SurfaceGrid) -> Float[Array, "h w"]:
-    r"""Unnormalised Hertz-like profile $\sqrt{\max(1 - \rho^2/r^2, 0)}$ with a smooth edge."""
+    r"""The contact's pressure profile with a smooth edge, each part over its resultant:
+    $(1 - f)\,\frac{3}{2\pi r^2}\sqrt{g} + f\,\frac{1}{2\pi r^2}\frac{\sqrt{g}}{g + \epsilon}$,
+    with $g$ the smoothed gap $\max(1 - \rho^2/r^2, 0)$ and $f$ the flatness; $\epsilon$ caps
+    the punch's edge (at about nine times its centre pressure on the sampled grid)."""
     rho2 = (grid.X - contact.x0) ** 2 + (grid.Y - contact.y0) ** 2
-    gap = 1 - rho2 / contact.radius**2
+    gap = jax.nn.softplus(_EDGE_SHARPNESS * (1 - rho2 / contact.radius**2)) / _EDGE_SHARPNESS
     # The tiny floor keeps the square root differentiable where softplus underflows.
-    return jnp.sqrt(jax.nn.softplus(_EDGE_SHARPNESS * gap) / _EDGE_SHARPNESS + 1e-20)
+    hertz = jnp.sqrt(gap + 1e-20)
+    punch = hertz / (gap + _PUNCH_EDGE)
+    area = 2 * jnp.pi * contact.radius**2
+    return (1 - contact.flatness) * 3 * hertz / area + contact.flatness * punch / area
 
 
 def surface_tractions(wrench: Float[Array, "6"], contact: Contact, grid: SurfaceGrid) -> Float[Array, "3 h w"]:
@@ -201,16 +217,36 @@ def _hertz_transform(x2: Float[Array, "*q"]) -> tuple[Float[Array, "*q"], Float[
     return jnp.where(small, g_series, g), jnp.where(small, dg_series, dg_over_x)
 
 
+def _punch_transform(
+    x2: Float[Array, "*q"], hertz: Float[Array, "*q"]
+) -> tuple[Float[Array, "*q"], Float[Array, "*q"]]:
+    r"""$\sin x / x$ and its $\frac{d}{dx}(\sin x/x)/x = -g(x)$ of $x^2$ = `x2`, given the
+    Hertz transform $g$ of [`_hertz_transform`][] of the same argument.
+
+    $2\pi r^2 \sin(qr)/(qr)$ is the Fourier transform of the unit flat-punch profile
+    $1/\sqrt{1 - \rho^2/r^2}$ of radius $r$. Below $x = 1$ its Taylor series
+    $\sum_k (-1)^k x^{2k}/(2k + 1)!$ replaces the quotient, which loses its derivative at 0.
+    """
+    small = x2 < 1.0
+    safe = jnp.sqrt(jnp.where(small, 1.0, x2))
+    series = jnp.zeros_like(x2)
+    z = jnp.where(small, x2, 0.0)
+    for k in range(_HERTZ_SERIES_TERMS, -1, -1):
+        series = series * z + (-1) ** k / math.factorial(2 * k + 1)
+    return jnp.where(small, series, jnp.sin(safe) / safe), -hertz
+
+
 def traction_spectrum(wrench: Float[Array, "6"], contact: Contact, grid: SurfaceGrid) -> Complex[Array, "3 h k"]:
     r"""The `rfft2` of the traction fields `(tx, ty, p)` (MPa) of [`surface_tractions`][],
     from their exact continuum transform with the hard Hertz edge.
 
     The basis fields of [`surface_tractions`][] about the contact centre are the profile
-    $H = \sqrt{1 - \rho^2/r^2}$, with transform $\hat H(q) = 2\pi r^2 g(qr)$,
-    $g(x) = (\sin x - x\cos x)/x^3$, and its first moments $\Delta X H$, $\Delta Y H$, with
-    transforms $i\,\partial\hat H/\partial q_{x,y}$. Their coefficients come from the
-    continuum moments ($\int H = 2\pi r^2/3$, $\int \Delta X^2 H = 2\pi r^4/15$), so the
-    field's resultant is `wrench`. Dividing by the cell area and shifting to the grid's first
+    $H$ and its first moments $\Delta X H$, $\Delta Y H$, whose transforms are
+    $i\,\partial\hat H/\partial q_{x,y}$. The sphere's part of $H$, $\sqrt{1 - \rho^2/r^2}$,
+    has the transform $2\pi r^2 g(qr)$ with $g(x) = (\sin x - x\cos x)/x^3$, resultant
+    $2\pi r^2/3$ and second moment $\int \Delta X^2 H = 2\pi r^4/15$; the punch's,
+    $1/\sqrt{1 - \rho^2/r^2}$, has $2\pi r^2 \sin(qr)/(qr)$, $2\pi r^2$ and $2\pi r^4/3$. The
+    coefficients come from those continuum moments, so the field's resultant is `wrench`. Dividing by the cell area and shifting to the grid's first
     cell gives the DFT of the band-limited field, in the repository's Fourier convention
     ($k_y$ negative along rows, because $y$ points up); the Nyquist bins are dropped. The
     result is smooth in the wrench and in the contact's centre and radius.
@@ -221,12 +257,17 @@ def traction_spectrum(wrench: Float[Array, "6"], contact: Contact, grid: Surface
     dtype = grid.X.dtype
     kx, ky = wavenumber_grid((rows, cols), grid.spacing, real=True, dtype=dtype)
     kx, ky = kx[None, :], ky[:, None]
-    r, x0, y0 = contact.radius, contact.x0, contact.y0
-    g, dg = _hertz_transform((kx * kx + ky * ky) * r * r)
-    m0, m2 = 2 * jnp.pi * r**2 / 3, 2 * jnp.pi * r**4 / 15
-    profile = 2 * jnp.pi * r**2 * g
+    r, x0, y0, f = contact.radius, contact.x0, contact.y0, contact.flatness
+    q2r2 = (kx * kx + ky * ky) * r * r
+    g, dg = _hertz_transform(q2r2)
+    sinc, dsinc = _punch_transform(q2r2, g)
+    # The unit-resultant profile's transform and its second moment (the int of dX^2 over
+    # it): 3 g(qr) and r^2/5 for the sphere's part, sin(qr)/(qr) and r^2/3 for the punch's.
+    profile = (1 - f) * 3 * g + f * sinc
+    m0, m2 = 1.0, r**2 * ((1 - f) / 5 + f / 3)
     # i dH/dq_x and i dH/dq_y, without the factor i (applied below).
-    moment_x, moment_y = 2 * jnp.pi * r**4 * dg * kx, 2 * jnp.pi * r**4 * dg * ky
+    radial = r**2 * ((1 - f) * 3 * dg + f * dsinc)
+    moment_x, moment_y = radial * kx, radial * ky
     fx, fy, fz = wrench[0], wrench[1], wrench[2]
     tx, ty, tz = wrench[3] * NMM_PER_NM, wrench[4] * NMM_PER_NM, wrench[5] * NMM_PER_NM
     # Resultants about the origin of the basis fields centred at (x0, y0): see surface_tractions.

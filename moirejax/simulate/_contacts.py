@@ -19,9 +19,11 @@ the theory has them:
 
 The fields are averaged over each cell from a grid `supersample` times finer, so the
 singular edges carry their load where it belongs, and the wrench of the fields is their
-exact resultant ([`traction_resultant`][]). None of this is shared with the inversion,
-which assumes one Hertz patch: frames of these indenters test it on loads it does not
-describe.
+exact resultant ([`traction_resultant`][]). The inversion's patch blends a sphere's and a
+flat punch's pressures on one round contact, from their exact transforms, with the loads
+spread alike; rings, lines, squares and several contacts it does not describe, and even
+its own two limits reach it here through another path (sampled, capped, averaged over
+cells): frames of these indenters test it on loads it does not describe exactly.
 
 Lengths are mm, forces N, torques N·m.
 """
