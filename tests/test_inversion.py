@@ -373,8 +373,9 @@ def test_tracking_agrees_with_levenberg_marquardt_and_never_retraces(mid, invert
             assert np.all(difference < 1.0 * np.asarray(reference.sigma) + 1e-4 * WRENCH_SCALE), difference
     # After the first frame the frozen-Jacobian iterations carry the stream (a few model
     # evaluations per frame; Levenberg-Marquardt would take ten or more steps). With the
-    # carrier bands beside the moiré bands they take about one more.
-    assert np.median(steps[1:]) <= 5, steps
+    # carrier bands beside the moiré bands they take about one more, and with the contact's
+    # flatness among the unknowns (a direction the fringes see weakly at light load) one more.
+    assert np.median(steps[1:]) <= 6, steps
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 1280, 1281])

@@ -24,7 +24,7 @@ RADIUS_PRIOR_WIDTH = 0.6
 # this wide: a flat face (1) is one width away. A light load barely shows the pressure's
 # shape, and the prior then keeps it rounded.
 FLATNESS_PRIOR_WIDTH = 1.0
-_FLATNESS_WALL = 30.0
+_FLATNESS_OVERSHOOT = 0.05
 # How many unknowns a frame has, and where the scaled wrench sits among the solvers'
 # coordinates (`LoadState.vector`).
 N_UNKNOWNS = 11
@@ -87,7 +87,7 @@ class LoadState(eqx.Module):
 
     @property
     def contact(self) -> Contact:
-        return Contact(x0=self.x0, y0=self.y0, radius=jnp.exp(self.log_radius), flatness=self.flatness)
+        return Contact(x0=self.x0, y0=self.y0, radius=jnp.exp(self.log_radius), flatness=self.contact_flatness)
 
     @property
     def exposure(self) -> Float[Array, "*b"]:
@@ -99,11 +99,20 @@ class LoadState(eqx.Module):
         return (self.log_radius - math.log(TYPICAL_RADIUS)) / RADIUS_PRIOR_WIDTH
 
     def flatness_misfit(self) -> Float[Array, "*b"]:
-        """How far the pressure's shape is from a rounded indenter's, in widths of its prior,
-        with a steep wall outside the shapes between a sphere and a flat punch (a little
-        below 0 is allowed: the flatness of a sphere's contact scatters about 0)."""
-        wall = jnp.maximum(self.flatness - 1.0, 0.0) - jnp.maximum(-0.25 - self.flatness, 0.0)
-        return (self.flatness + _FLATNESS_WALL * wall) / FLATNESS_PRIOR_WIDTH
+        """How far the pressure's shape is from a rounded indenter's, in widths of its prior."""
+        return self.flatness / FLATNESS_PRIOR_WIDTH
+
+    @property
+    def contact_flatness(self) -> Float[Array, "*b"]:
+        """The contact's flatness: the `flatness` coordinate between a sphere's 0 and a flat
+        punch's 1, and beyond them saturating smoothly within `_FLATNESS_OVERSHOOT`. A shape
+        outside those two is not a contact's: below 0 the pressure would pull at the edge,
+        which let one patch mimic three presses far apart."""
+        f = self.flatness
+        margin = _FLATNESS_OVERSHOOT
+        low = margin * jnp.tanh(jnp.minimum(f, 0.0) / margin)
+        high = 1.0 + margin * jnp.tanh(jnp.maximum(f - 1.0, 0.0) / margin)
+        return jnp.where(f < 0.0, low, jnp.where(f > 1.0, high, f))
 
     def unloaded(self) -> "LoadState":
         """This state with no load: the contact guess and exposure kept."""
