@@ -80,7 +80,7 @@ def _residuals(y, args, mechanics_shape) -> tuple[Float[Array, " n"], Float[Arra
 
 
 def _linearise(y, args, mechanics_shape) -> tuple[Float[Array, " n"], Float[Array, "11 n"], Float[Array, ""]]:
-    """Residuals, their transposed Jacobian (one linearisation, the ten tangents vmapped)
+    """Residuals, their transposed Jacobian (one linearisation, a tangent per unknown vmapped)
     and the number of informative pixels."""
     r, jvp, used = jax.linearize(lambda y_: _residuals(y_, args, mechanics_shape), y, has_aux=True)
     # Rows per unknown: contiguous in memory, and J^T J is one cheap product.
