@@ -1,5 +1,7 @@
 """Shared tolerances and numerical references for the test suite."""
 
+import time
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -119,3 +121,13 @@ def spectral_peak(image, px_per_mm, k_guess, radius):
 def wrap(angle):
     """Wrap angles to (-pi, pi]."""
     return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
+
+
+def wait_until(predicate, timeout: float, poll: float = 0.005) -> bool:
+    """Whether `predicate()` becomes true within `timeout` seconds, polled every `poll`."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll)
+    return False

@@ -22,14 +22,7 @@ from moirejax.live import (
     UdpForceTorqueSource,
 )
 
-
-def wait_until(predicate, timeout=10.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return False
+from .helpers import wait_until
 
 
 def send(address, *payloads):
@@ -54,7 +47,7 @@ def test_udp_readings_in_every_accepted_form_and_malformed_ones_counted():
             "4.5,nan,0,0,0,0,0",  # not finite
             b"\xff\xfe",  # not text
         )
-        assert wait_until(lambda: source.stats["malformed"] >= 4 and len(got) >= 5)
+        assert wait_until(lambda: source.stats["malformed"] >= 4 and len(got) >= 5, 10.0)
     finally:
         source.close()
     times = [t for t, _ in got]
@@ -72,7 +65,7 @@ def test_a_mounting_map_turns_readings_into_the_sensors_convention():
     source.start(lambda t, w: got.append(w))
     try:
         send(source.address, "0,0.1,0.2,0.3,0.004,0.005,0.006")
-        assert wait_until(lambda: got)
+        assert wait_until(lambda: got, 10.0)
     finally:
         source.close()
     np.testing.assert_allclose(got[0], [0.1, -0.2, -0.3, 0.004, -0.005, -0.006])
@@ -121,7 +114,7 @@ def test_netft_samples_are_scaled_by_the_boxs_counts_and_faults_dropped():
     got: list = []
     source.start(lambda t, w: got.append(w))
     try:
-        assert wait_until(lambda: len(got) == 2 and source.stats["malformed"] == 1)
+        assert wait_until(lambda: len(got) == 2 and source.stats["malformed"] == 1, 10.0)
     finally:
         source.close()
         time.sleep(0.2)
@@ -137,7 +130,7 @@ def test_the_log_is_what_import_reads_and_a_clock_stepping_back_is_left_out(tmp_
     source = UdpForceTorqueSource("127.0.0.1", 0)
     log = ForceTorqueLog(tmp_path / "ft.csv", source, flush_every=0.0)
     send(source.address, *[f"{0.001 * i!r},{i},0,{2 * i},0,0,0" for i in range(50)], "0.0005,9,9,9,9,9,9")
-    assert wait_until(lambda: log.stats["written"] + log.stats["out_of_order"] == 51)
+    assert wait_until(lambda: log.stats["written"] + log.stats["out_of_order"] == 51, 10.0)
     # Flushed as it goes: readable before the log is closed.
     times, wrenches = read_ft_log(tmp_path / "ft.csv")
     assert len(times) == 50
@@ -157,7 +150,7 @@ def test_a_recording_with_a_force_torque_source_writes_both_logs(tmp_path):
     for i in range(3):
         sink.emit_image(frame, make_record(stamp=100.0 + i, frame=i, mode="tactile", status="converged"))
         send(source.address, f"{100.0 + i + 0.5},0,0,{i},0,0,0")
-    assert wait_until(lambda: source.stats["readings"] == 3)
+    assert wait_until(lambda: source.stats["readings"] == 3, 10.0)
     sink.close()
     assert len((tmp_path / "session" / "frames.csv").read_text().splitlines()) == 4
     times, wrenches = read_ft_log(tmp_path / "session" / "ft.csv")

@@ -27,6 +27,7 @@ from moirejax.live import (
 from moirejax.physics import Contact
 from moirejax.simulate import Simulator
 
+from .helpers import wait_until
 from .test_live_mcap import read
 
 
@@ -84,15 +85,9 @@ class Rig:
         return np.mean([self.render(-1 - i, np.zeros(6), Contact()) for i in range(8)], axis=0)
 
 
-def wait_until(predicate, timeout=900.0):
-    # Generous: the handle compiles its inversion before the first record, and a loaded
-    # machine may take minutes; a passing run waits only as long as the handle needs.
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
+# Generous: the handle compiles its inversion before the first record, and a loaded
+# machine may take minutes; a passing run waits only as long as the handle needs.
+COMPILE_TIMEOUT = 900.0
 
 
 @pytest.fixture(scope="module")
@@ -114,14 +109,16 @@ def session(tmp_path_factory):
     reader = threading.Thread(target=lambda: records.extend(handle), daemon=True)
     reader.start()
     try:
-        assert wait_until(lambda: handle.mode == "tactile" and handle.latest().frame >= PRESSED)
+        assert wait_until(lambda: handle.mode == "tactile" and handle.latest().frame >= PRESSED, COMPILE_TIMEOUT)
         out["refused"] = pytest.raises(RuntimeError, handle.tare)
-        assert wait_until(lambda: handle.latest().frame >= UNPLUG + 10 and handle.mode == "vision")
+        assert wait_until(lambda: handle.latest().frame >= UNPLUG + 10 and handle.mode == "vision", COMPILE_TIMEOUT)
         compiled = handle._processor.step._compiled
         out["programs_before"] = compiled._cache_size()
         handle.tare()
         rig.tared.set()
-        assert wait_until(lambda: rig.second_press is not None and handle.latest().frame > rig.second_press + 30)
+        assert wait_until(
+            lambda: rig.second_press is not None and handle.latest().frame > rig.second_press + 30, COMPILE_TIMEOUT
+        )
         out["programs_after"] = handle._processor.step._compiled._cache_size()
         out["same_program"] = handle._processor.step._compiled is compiled
         out["second_press"] = rig.second_press
