@@ -202,7 +202,7 @@ def _read_out(path: Path) -> dict[str, str] | None:
         return {row["frame"]: row["status"] for row in csv.DictReader(f)}
 
 
-def _file_cases(rng, device, loaded, unloaded, schedule, tmp: Path) -> dict:
+def _file_cases(rng, device, loaded, unloaded, wrenches, tmp: Path) -> dict:
     """File-level faults through `moirejax invert`."""
     device_file = tmp / "mid.json"
     mj.save_device(device_file, device)
@@ -216,8 +216,8 @@ def _file_cases(rng, device, loaded, unloaded, schedule, tmp: Path) -> dict:
     dataset = tmp / "dataset"
     with mj.DatasetWriter(dataset, device=mj.device_to_json(device)) as writer:
         names = [writer.add(f, np.zeros(6), contact=0) for f in to8[:2]]
-        names += [writer.add(f, schedule.wrench[i], contact=1) for i, f in enumerate(to8[2:])]
-        corrupt = {writer.add(to8[2], schedule.wrench[0], contact=1): kind for kind in faults}
+        names += [writer.add(f, wrenches[i], contact=1) for i, f in enumerate(to8[2:])]
+        corrupt = {writer.add(to8[2], wrenches[0], contact=1): kind for kind in faults}
     (dataset / "frames" / names[0]).write_bytes(faults["truncated"])
     for name, kind in corrupt.items():
         (dataset / "frames" / name).write_bytes(faults[kind])
@@ -297,7 +297,13 @@ def main(argv=None):
     shape = (device.height, device.width)
     fabrication = jr.PRNGKey(args.seed + 1000)
     render = _render(device, fabrication)
-    schedule = mj.load_schedule("mixed", args.n, seed=args.seed)
+    # The `mixed` schedule holds unloaded frames too; the loaded cases take its first
+    # `--n` loads (the unloaded ones are a case of their own).
+    schedule = mj.load_schedule("mixed", 4 * args.n, seed=args.seed)
+    pressed = np.flatnonzero(np.any(np.asarray(schedule.wrench) != 0, axis=1))[: args.n]
+    if pressed.size < args.n:
+        raise SystemExit(f"the mixed schedule has {pressed.size} loads, fewer than --n {args.n}")
+    wrenches = np.asarray(schedule.wrench)[pressed]
 
     def unit_frames(key, wrenches, contacts, draw=render):
         keys = jr.split(key, len(wrenches))
@@ -306,19 +312,19 @@ def main(argv=None):
             for k, w, (x0, y0, r) in zip(keys, wrenches, contacts)
         ]
 
-    contacts = list(zip(schedule.x0, schedule.y0, schedule.radius))
+    contacts = [(schedule.x0[i], schedule.y0[i], schedule.radius[i]) for i in pressed]
     k_ref, k_loaded, k_free, k_other = jr.split(key, 4)
     zeros = [np.zeros(6)] * args.n
     centred = [(0.0, 0.0, 3.5)] * args.n
     reference = np.mean(unit_frames(k_ref, zeros[:4], centred[:4]), axis=0)
-    loaded = unit_frames(k_loaded, schedule.wrench, contacts)
+    loaded = unit_frames(k_loaded, wrenches, contacts)
     unloaded = unit_frames(k_free, zeros, centred)
     # The wrong unit: the other two designs under the same loads (half each).
     other = []
     for i, name in enumerate(("dense", "sparse")):
         draw = _render(mj.preset(name), jr.fold_in(fabrication, i))
         picks = list(range(i, args.n, 2))
-        other += unit_frames(jr.fold_in(k_other, i), schedule.wrench[picks], [contacts[j] for j in picks], draw)
+        other += unit_frames(jr.fold_in(k_other, i), wrenches[picks], [contacts[j] for j in picks], draw)
     render_s = time.perf_counter() - start
 
     def noisy(frame):
@@ -335,7 +341,7 @@ def main(argv=None):
 
     n = args.n
     none = [None] * n
-    truths = list(schedule.wrench)
+    truths = list(wrenches)
     cases = {
         "valid_loaded": ("loaded", loaded, truths),
         "valid_unloaded": ("unloaded", unloaded, none),
@@ -377,7 +383,7 @@ def main(argv=None):
     }
     if not args.no_files:
         with tempfile.TemporaryDirectory(prefix="bad-frames-") as tmp:
-            report["files"] = _file_cases(rng, device, loaded, unloaded, schedule, Path(tmp))
+            report["files"] = _file_cases(rng, device, loaded, unloaded, wrenches, Path(tmp))
     report.update(
         median_ms=float(np.median(seconds) * 1e3),
         p90_ms=float(np.percentile(seconds, 90) * 1e3),

@@ -89,6 +89,7 @@ def test_two_fingertips_are_read_with_two_patches(mid, simulator, inverter):
     # The wrench CSV carries the second patch and its share of the wrench.
     row = dict(zip(CSV_HEADER, _rows(["f"], jax.tree.map(lambda x: x[None], estimate), [None])[0]))
     assert row["contacts"] == 2 and row["second_fz"] == pytest.approx(float(estimate.second_wrench[2]))
+    assert row["second_flatness"] == pytest.approx(float(estimate.second_contact.flatness))
     # One fingertip alone is read with one patch.
     single, truth = _frame(simulator, mid, fingertips[:1])
     estimate = invert(inverter, single)

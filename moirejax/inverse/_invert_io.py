@@ -31,6 +31,7 @@ CSV_HEADER = (
     "second_x0",
     "second_y0",
     "second_radius",
+    "second_flatness",
     *(f"second_{c}" for c in WRENCH_AXES),
     "status",
     "message",
@@ -216,7 +217,7 @@ def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head
     patch = [np.asarray(v) for v in (c.x0, c.y0, c.radius, c.flatness)]
     second = estimate.second_contact
     contacts = np.asarray(estimate.contacts)
-    patch += [contacts, *(np.asarray(v) for v in (second.x0, second.y0, second.radius))]
+    patch += [contacts, *(np.asarray(v) for v in (second.x0, second.y0, second.radius, second.flatness))]
     # The second patch's share of the wrench; NaN for a frame read with one patch.
     second_wrench = np.where(contacts[:, None] == 2, np.asarray(estimate.second_wrench), np.nan)
     rows = []

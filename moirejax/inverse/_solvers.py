@@ -218,7 +218,9 @@ def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array,
     there it takes a flat punch's pressure to its edge (an 8 N punch: 4.5 % of the phase
     change left by the rounded patch, 0.2 % with its flatness fitted).
     """
-    rounded = eqx.tree_at(lambda i: i.fitted_flatness, problem, jnp.asarray(problem.brightness))
+    rounded = eqx.tree_at(
+        lambda i: i.fitted_flatness, problem, jnp.asarray(problem.brightness) & problem.fitted_flatness
+    )
     y, r, jacobian, steps, result = levenberg_marquardt(
         rounded, y0, args, more_starts=more_starts, when_unexplained=problem.brightness
     )
@@ -228,7 +230,9 @@ def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array,
 
     def refine(carry, fitted):
         y, more = carry
-        stage = eqx.tree_at(lambda i: (i.fitted_light, i.fitted_flatness), fit, (fitted, fitted))
+        stage = eqx.tree_at(
+            lambda i: (i.fitted_light, i.fitted_flatness), fit, (fitted, fitted & problem.fitted_flatness)
+        )
         solution = levenberg_marquardt(stage, y, args, more_starts=more)
         return (solution[0], jnp.asarray(more_starts)), solution
 

@@ -414,14 +414,21 @@ def _patches(row: dict[str, str], wrench: np.ndarray, path: Path, line: int) -> 
     when the row was read with two and carries the second patch's share of the wrench (files
     written before that share was a column draw their two contacts as one; files written
     before the flatness was a column have round patches)."""
-    flatness = _number(row, "flatness", path, line) if row.get("flatness") not in (None, "", "nan") else 0.0
-    first = (*(_number(row, c, path, line) for c in ("x0", "y0", "radius")), flatness)
+    first = (*(_number(row, c, path, line) for c in ("x0", "y0", "radius")), _flatness(row, "flatness", path, line))
     columns = [f"second_{axis}" for axis in WRENCH_AXES]
     if row.get("contacts") != "2" or any(row.get(c) in (None, "", "nan") for c in columns):
         return [(wrench, first)]
     second_wrench = np.array([_number(row, c, path, line) for c in columns])
-    second = (*(_number(row, f"second_{c}", path, line) for c in ("x0", "y0", "radius")), 0.0)
+    second = (
+        *(_number(row, f"second_{c}", path, line) for c in ("x0", "y0", "radius")),
+        _flatness(row, "second_flatness", path, line),
+    )
     return [(wrench - second_wrench, first), (second_wrench, second)]
+
+
+def _flatness(row: dict[str, str], column: str, path: Path, line: int) -> float:
+    # Files written before the patch's flatness was a column: a rounded patch's.
+    return _number(row, column, path, line) if row.get(column) not in (None, "", "nan") else 0.0
 
 
 def _number(row: dict[str, str], column: str, path: Path, line: int) -> float:
