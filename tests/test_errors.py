@@ -28,7 +28,7 @@ from moirejax.calibration._residual_head import ResidualHead
 from moirejax.cli import _errors, _main
 from moirejax.cli._main import main
 from moirejax.data._dataset import DatasetWriter
-from moirejax.inverse._invert_io import find_reference, invert_recording, iter_source_frames
+from moirejax.inverse._invert_io import _failed_row, CSV_HEADER, find_reference, invert_recording, iter_source_frames
 
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -226,6 +226,15 @@ def test_inverting_without_a_reference_warns_loudly(device_file, tmp_path, capsy
     err = capsys.readouterr().err
     warning = next(line for line in err.splitlines() if ": warning: " in line)
     assert "another unit" in warning and "--reference" in warning and built == [None]
+
+
+def test_an_unreadable_frames_row_has_every_column_of_the_header():
+    row = dict(zip(CSV_HEADER, _failed_row("f.png", mj.Status.UNREADABLE, "f.png: not a readable image")))
+    assert len(row) == len(CSV_HEADER) == len(_failed_row("f.png", mj.Status.UNREADABLE, ""))
+    assert row["frame"] == "f.png" and row["status"] == "unreadable" and row["message"].startswith("f.png")
+    assert row["contacts"] == 0 and all(
+        np.isnan(v) for k, v in row.items() if k not in ("frame", "contacts", "status", "message")
+    )
 
 
 def test_truncated_reference_frame_is_skipped_not_fatal(tmp_path):

@@ -231,8 +231,14 @@ def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head
 
 
 def _failed_row(name: str, code: Status, message: str) -> list:
-    nan = float("nan")
-    return [name, *([nan] * 12), nan, nan, nan, nan, 0, nan, nan, nan, *([nan] * 6), code.name.lower(), message]
+    # Every number unknown (NaN) but the count of contacts, laid out by the header itself.
+    row = dict.fromkeys(CSV_HEADER, float("nan")) | {
+        "frame": name,
+        "contacts": 0,
+        "status": code.name.lower(),
+        "message": message,
+    }
+    return [row[column] for column in CSV_HEADER]
 
 
 def invert_segment(
