@@ -1,6 +1,6 @@
 """Frames outside the model's validity, and corrupted inputs: what the inversion believes.
 
-    python benchmarks/bad_frames.py [--n 8] [--seed 0] [--json] [--no-files]
+    python benchmarks/bad_frames.py [--n 8] [--seed 0] [--json] [--no-files] [--no-frames] [--fuzz 200] [--kills 30]
 
 A unit of the Mid design (`mj.preset("mid")`, `high`-fidelity frames with a fixed
 fabrication error) is inverted cold, frame by frame ([`mj.invert`]) with the
@@ -34,6 +34,17 @@ docs/errors.md does not list), lost or partial output (a CSV missing, or with fe
 than there are frames), and corrupt files that got a believed wrench. Each `invert` run
 compiles its own stream inversion, so this part adds two compiles.
 
+`--fuzz N` writes N random corruptions of the unit's PNG frames into one folder (each
+cut at a random byte, random bytes overwritten, a header byte flipped, random bytes, a
+valid image of another size, or a valid image with a random patch of other pixels) and
+inverts the folder with `moirejax invert` (one more compile): counted are crashes, rows
+missing from the CSV, the statuses by kind of corruption, and files that do not decode to
+a frame of the unit's size yet got a believed wrench. `--kills K` runs `moirejax import
+--overwrite` of one recording over a dataset of another, in a subprocess killed with
+SIGKILL at a random moment past the interpreter's start, K times: afterwards the folder
+must open as the old dataset or the new one with all its frames (`lost` counts the
+others). `--no-frames` skips the in-process frame cases.
+
 Time per frame, the compile time of the first frame and the peak memory are printed too.
 The inversion grid is the default ([`mj.model_grid_for`]); set `MOIREJAX_MODEL_GRID`
 (e.g. `64`) to trade accuracy for a faster run: the JSON records the grid used. A cold
@@ -48,6 +59,10 @@ import csv
 import io
 import json
 import resource
+import shutil
+import signal
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -280,12 +295,162 @@ def _file_cases(rng, device, loaded, unloaded, wrenches, tmp: Path) -> dict:
     return report
 
 
+def _random_fault(rng: np.random.Generator, good: bytes, frame8: np.ndarray) -> tuple[str, bytes]:
+    """One random corruption of the PNG bytes `good` of the 8-bit frame `frame8`: its kind and bytes."""
+    kind = ("cut", "bytes", "header", "garbage", "size", "pixels")[rng.integers(6)]
+    if kind == "cut":
+        return kind, good[: int(rng.integers(0, len(good)))]
+    if kind == "bytes":
+        data = bytearray(good)
+        for i in rng.integers(0, len(good), int(rng.integers(1, 9))):
+            data[i] = int(rng.integers(256))
+        return kind, bytes(data)
+    if kind == "header":
+        data = bytearray(good)
+        data[int(rng.integers(0, 33))] ^= 0xFF
+        return kind, bytes(data)
+    if kind == "garbage":
+        return kind, rng.bytes(int(rng.integers(1, len(good))))
+    if kind == "size":
+        h, w = frame8.shape
+        image = frame8[: int(rng.integers(h // 2, h)), : int(rng.integers(w // 2, w))]
+        return kind, cv2.imencode(".png", image)[1].tobytes()
+    # A valid image with a random patch (1-25 % of the field) of other pixels.
+    image = frame8.copy()
+    h, w = image.shape
+    ph, pw = int(h * rng.uniform(0.1, 0.5)), int(w * rng.uniform(0.1, 0.5))
+    top, left = int(rng.integers(0, h - ph)), int(rng.integers(0, w - pw))
+    image[top : top + ph, left : left + pw] = rng.integers(0, 256, (ph, pw), dtype=np.uint8)
+    return kind, cv2.imencode(".png", image)[1].tobytes()
+
+
+def _fuzz_files(rng, device, loaded, unloaded, count: int, tmp: Path) -> dict:
+    """`count` random corruptions of the unit's PNG frames in one folder, through `moirejax
+    invert` (one compile): crashes, rows lost, and frames that no reader can decode, or
+    decode at another size, but got a believed wrench."""
+    device_file = tmp / "mid.json"
+    mj.save_device(device_file, device)
+    frames8 = [np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in (*loaded, *unloaded[1:])]
+    folder = tmp / "fuzz"
+    folder.mkdir()
+    cv2.imwrite(str(tmp / "fuzz_reference.png"), np.round(np.clip(unloaded[0], 0, 1) * 255).astype(np.uint8))
+    kinds = {}
+    for i in range(count):
+        frame8 = frames8[int(rng.integers(len(frames8)))]
+        kind, data = _random_fault(rng, cv2.imencode(".png", frame8)[1].tobytes(), frame8)
+        name = f"{i:04d}.png"
+        (folder / name).write_bytes(data)
+        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+        readable = decoded is not None and decoded.shape == frame8.shape
+        kinds[name] = (kind, readable)
+    out = tmp / "fuzz.csv"
+    t = time.perf_counter()
+    argv = [
+        "invert",
+        "--device",
+        str(device_file),
+        "--data",
+        str(folder),
+        "--reference",
+        str(tmp / "fuzz_reference.png"),
+    ]
+    result = _run_cli([*argv, "--out", str(out), "--quiet"])
+    result["seconds"] = round(time.perf_counter() - t, 1)
+    rows = _read_out(out) or {}
+    result["files"] = count
+    result["rows_missing"] = sum(name not in rows for name in kinds)
+    by_kind: dict = {}
+    for name, (kind, readable) in kinds.items():
+        entry = by_kind.setdefault(kind, {"files": 0, "readable": 0, "statuses": {}})
+        entry["files"] += 1
+        entry["readable"] += readable
+        status = rows.get(name, "missing")
+        entry["statuses"][status] = entry["statuses"].get(status, 0) + 1
+    result["by_kind"] = by_kind
+    # A wrench for a file that does not decode to a frame of the unit's size is a wrong one.
+    result["unreadable_believed"] = sum(
+        rows.get(name) in ("converged", "max_steps") for name, (_, readable) in kinds.items() if not readable
+    )
+    return result
+
+
+def _kill_imports(rng, device, loaded, unloaded, kills: int, tmp: Path) -> dict:
+    """`moirejax import --overwrite` of one recording over a dataset of another, killed
+    (SIGKILL, which nothing can catch) at `kills` random moments of its run: afterwards the
+    folder must hold the old dataset or the new one, whole."""
+    device_file = tmp / "mid.json"
+    mj.save_device(device_file, device)
+    frames8 = [np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in (*unloaded, *loaded)]
+
+    def recording(root: Path, n: int) -> list[str]:
+        (root / "images").mkdir(parents=True)
+        lines = ["frame,fx,fy,fz,tx,ty,tz"]
+        for i in range(n):
+            cv2.imwrite(str(root / "images" / f"{i:04d}.png"), frames8[i % len(frames8)])
+            lines.append(f"{i:04d}.png,0,0,{0.01 * i:.2f},0,0,0")
+        (root / "ft.csv").write_text("\n".join(lines) + "\n")
+        return lines
+
+    # Long enough that most of a run is the import's own work, not the interpreter's start.
+    old_n, new_n = 40, 80
+    recording(tmp / "old", old_n)
+    recording(tmp / "new", new_n)
+    home = tmp / "kills"
+    home.mkdir()
+    target = home / "ds"
+    command = [sys.executable, "-c", "import sys; from moirejax.cli import main; sys.exit(main(sys.argv[1:]))"]
+
+    def run_import(source: Path, overwrite: bool) -> subprocess.Popen:
+        argv = ["import", "--frames", str(source / "images"), "--wrench", str(source / "ft.csv")]
+        argv += ["--device", str(device_file), "--out", str(target)] + (["--overwrite"] if overwrite else [])
+        return subprocess.Popen([*command, *argv], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+    def state() -> str:
+        try:
+            dataset = mj.open_dataset(target)
+            whole = all((target / "frames" / name).is_file() for name in dataset.frame_names)
+        except Exception:
+            return "broken"
+        return {old_n: "old", new_n: "new"}.get(len(dataset), "broken") if whole else "broken"
+
+    assert run_import(tmp / "old", False).wait() == 0
+    t = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "import moirejax.cli"], check=True)
+    startup = time.perf_counter() - t
+    t = time.perf_counter()
+    assert run_import(tmp / "new", True).wait() == 0
+    full = time.perf_counter() - t
+    outcomes: dict = {"old": 0, "new": 0, "broken": 0}
+    for _ in range(kills):
+        shutil.rmtree(target)
+        assert run_import(tmp / "old", False).wait() == 0
+        process = run_import(tmp / "new", True)
+        # Past the interpreter's start, when the import reads, writes and renames.
+        time.sleep(rng.uniform(min(0.8 * startup, full), full))
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        outcomes[state()] += 1
+        # What SIGKILL leaves is hidden staging folders beside the dataset; none is the dataset.
+        for stale in home.glob(".ds.staging-*"):
+            shutil.rmtree(stale)
+    return {
+        "kills": kills,
+        "import_s": round(full, 2),
+        "interpreter_start_s": round(startup, 2),
+        "outcomes": outcomes,
+        "lost": outcomes["broken"],
+    }
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=8, help="random instances per case")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", action="store_true", help="one line of JSON")
     parser.add_argument("--no-files", action="store_true", help="skip the file-level faults (two compiles)")
+    parser.add_argument("--no-frames", action="store_true", help="skip the in-process frame cases")
+    parser.add_argument("--fuzz", type=int, default=0, help="random file corruptions through invert (one compile)")
+    parser.add_argument("--kills", type=int, default=0, help="imports killed at random moments")
     args = parser.parse_args(argv)
     if args.n < 2:
         parser.error("--n must be >= 2")
@@ -357,19 +522,19 @@ def main(argv=None):
         "nan_pixels": ("invalid", [with_nan(f) for f in loaded], truths),
     }
 
-    t = time.perf_counter()
-    inverter = mj.Inverter(device, reference)
-    jax.block_until_ready(mj.invert(inverter, jnp.asarray(loaded[0], jnp.float32)).wrench)
-    compile_s = time.perf_counter() - t
-    frames_report, seconds = _invert_cases(inverter, cases)
-
-    invalid = [c for c in frames_report.values() if c["kind"] == "invalid"]
-    valid = [c for c in frames_report.values() if c["kind"] != "invalid"]
-    report: dict = {
-        "n": n,
-        "seed": args.seed,
-        "model_grid": list(inverter.model_shape),
-        "summary": {
+    report: dict = {"n": n, "seed": args.seed}
+    seconds: list[float] = []
+    compile_s = None
+    if not args.no_frames:
+        t = time.perf_counter()
+        inverter = mj.Inverter(device, reference)
+        jax.block_until_ready(mj.invert(inverter, jnp.asarray(loaded[0], jnp.float32)).wrench)
+        compile_s = time.perf_counter() - t
+        frames_report, seconds = _invert_cases(inverter, cases)
+        invalid = [c for c in frames_report.values() if c["kind"] == "invalid"]
+        valid = [c for c in frames_report.values() if c["kind"] != "invalid"]
+        report["model_grid"] = list(inverter.model_shape)
+        report["summary"] = {
             "invalid_frames": sum(c["frames"] for c in invalid),
             "false_accepts": sum(c["false_accepts"] for c in invalid),
             "false_accept_rate": sum(c["false_accepts"] for c in invalid) / sum(c["frames"] for c in invalid),
@@ -378,15 +543,20 @@ def main(argv=None):
             "false_reject_rate": sum(c["false_rejects"] for c in valid) / sum(c["frames"] for c in valid),
             "crashes": sum(c["crashes"] for c in frames_report.values()),
             "cases_with_false_accepts": [k for k, c in frames_report.items() if c.get("false_accepts")],
-        },
-        "cases": frames_report,
-    }
+        }
+        report["cases"] = frames_report
     if not args.no_files:
         with tempfile.TemporaryDirectory(prefix="bad-frames-") as tmp:
             report["files"] = _file_cases(rng, device, loaded, unloaded, wrenches, Path(tmp))
+    if args.fuzz:
+        with tempfile.TemporaryDirectory(prefix="bad-frames-") as tmp:
+            report["fuzz"] = _fuzz_files(rng, device, loaded, unloaded, args.fuzz, Path(tmp))
+    if args.kills:
+        with tempfile.TemporaryDirectory(prefix="bad-frames-") as tmp:
+            report["kills"] = _kill_imports(rng, device, loaded, unloaded, args.kills, Path(tmp))
     report.update(
-        median_ms=float(np.median(seconds) * 1e3),
-        p90_ms=float(np.percentile(seconds, 90) * 1e3),
+        median_ms=float(np.median(seconds) * 1e3) if seconds else None,
+        p90_ms=float(np.percentile(seconds, 90) * 1e3) if seconds else None,
         compile_s=compile_s,
         render_s=render_s,
         elapsed_s=time.perf_counter() - start,
