@@ -324,25 +324,28 @@ def _random_fault(rng: np.random.Generator, good: bytes, frame8: np.ndarray) -> 
     return kind, cv2.imencode(".png", image)[1].tobytes()
 
 
-def _fuzz_files(rng, device, loaded, unloaded, count: int, tmp: Path) -> dict:
+def _fuzz_files(rng, device, loaded, unloaded, wrenches, count: int, tmp: Path) -> dict:
     """`count` random corruptions of the unit's PNG frames in one folder, through `moirejax
-    invert` (one compile): crashes, rows lost, and frames that no reader can decode, or
-    decode at another size, but got a believed wrench."""
+    invert` (one compile): crashes, rows lost, frames that no reader can decode, or decode
+    at another size, but got a believed wrench, and how far the believed wrenches of the
+    frames that still decode (a patch of other pixels) are from their frame's load."""
     device_file = tmp / "mid.json"
     mj.save_device(device_file, device)
     frames8 = [np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in (*loaded, *unloaded[1:])]
+    truths = [*wrenches, *[np.zeros(6)] * (len(unloaded) - 1)]
     folder = tmp / "fuzz"
     folder.mkdir()
     cv2.imwrite(str(tmp / "fuzz_reference.png"), np.round(np.clip(unloaded[0], 0, 1) * 255).astype(np.uint8))
     kinds = {}
     for i in range(count):
-        frame8 = frames8[int(rng.integers(len(frames8)))]
+        pick = int(rng.integers(len(frames8)))
+        frame8 = frames8[pick]
         kind, data = _random_fault(rng, cv2.imencode(".png", frame8)[1].tobytes(), frame8)
         name = f"{i:04d}.png"
         (folder / name).write_bytes(data)
         decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
         readable = decoded is not None and decoded.shape == frame8.shape
-        kinds[name] = (kind, readable)
+        kinds[name] = (kind, readable, truths[pick])
     out = tmp / "fuzz.csv"
     t = time.perf_counter()
     argv = [
@@ -357,19 +360,29 @@ def _fuzz_files(rng, device, loaded, unloaded, count: int, tmp: Path) -> dict:
     result = _run_cli([*argv, "--out", str(out), "--quiet"])
     result["seconds"] = round(time.perf_counter() - t, 1)
     rows = _read_out(out) or {}
+    wrenches_out = {}
+    if out.exists():
+        with open(out, newline="") as f:
+            wrenches_out = {
+                row["frame"]: np.array([float(row[a]) for a in mj.WRENCH_AXES]) for row in csv.DictReader(f)
+            }
     result["files"] = count
     result["rows_missing"] = sum(name not in rows for name in kinds)
     by_kind: dict = {}
-    for name, (kind, readable) in kinds.items():
+    ranges = np.asarray(mj.axis_ranges())
+    for name, (kind, readable, truth) in kinds.items():
         entry = by_kind.setdefault(kind, {"files": 0, "readable": 0, "statuses": {}})
         entry["files"] += 1
         entry["readable"] += readable
         status = rows.get(name, "missing")
         entry["statuses"][status] = entry["statuses"].get(status, 0) + 1
+        if readable and status in ("converged", "max_steps"):
+            error = float(np.max(np.abs(wrenches_out[name] - truth) / ranges))
+            entry.setdefault("believed_max_error_over_range", []).append(round(error, 3))
     result["by_kind"] = by_kind
     # A wrench for a file that does not decode to a frame of the unit's size is a wrong one.
     result["unreadable_believed"] = sum(
-        rows.get(name) in ("converged", "max_steps") for name, (_, readable) in kinds.items() if not readable
+        rows.get(name) in ("converged", "max_steps") for name, (_, readable, _) in kinds.items() if not readable
     )
     return result
 
@@ -550,7 +563,7 @@ def main(argv=None):
             report["files"] = _file_cases(rng, device, loaded, unloaded, wrenches, Path(tmp))
     if args.fuzz:
         with tempfile.TemporaryDirectory(prefix="bad-frames-") as tmp:
-            report["fuzz"] = _fuzz_files(rng, device, loaded, unloaded, args.fuzz, Path(tmp))
+            report["fuzz"] = _fuzz_files(rng, device, loaded, unloaded, wrenches, args.fuzz, Path(tmp))
     if args.kills:
         with tempfile.TemporaryDirectory(prefix="bad-frames-") as tmp:
             report["kills"] = _kill_imports(rng, device, loaded, unloaded, args.kills, Path(tmp))
