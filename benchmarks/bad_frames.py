@@ -221,7 +221,7 @@ def _file_cases(rng, device, loaded, unloaded, wrenches, tmp: Path) -> dict:
     """File-level faults through `moirejax invert`."""
     device_file = tmp / "mid.json"
     mj.save_device(device_file, device)
-    to8 = [np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in (*unloaded[:2], *loaded[:2])]
+    to8 = [_to8(f) for f in (*unloaded[:2], *loaded[:2])]
     good = cv2.imencode(".png", to8[2])[1].tobytes()
     faults = _png_faults(rng, good)
     runs: dict = {}
@@ -295,6 +295,11 @@ def _file_cases(rng, device, loaded, unloaded, wrenches, tmp: Path) -> dict:
     return report
 
 
+def _to8(frame: np.ndarray) -> np.ndarray:
+    """A frame in [0, 1] as the 8-bit image a camera would write."""
+    return np.round(np.clip(frame, 0, 1) * 255).astype(np.uint8)
+
+
 def _random_fault(rng: np.random.Generator, good: bytes, frame8: np.ndarray) -> tuple[str, bytes]:
     """One random corruption of the PNG bytes `good` of the 8-bit frame `frame8`: its kind and bytes."""
     kind = ("cut", "bytes", "header", "garbage", "size", "pixels")[rng.integers(6)]
@@ -331,11 +336,11 @@ def _fuzz_files(rng, device, loaded, unloaded, wrenches, count: int, tmp: Path) 
     frames that still decode (a patch of other pixels) are from their frame's load."""
     device_file = tmp / "mid.json"
     mj.save_device(device_file, device)
-    frames8 = [np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in (*loaded, *unloaded[1:])]
+    frames8 = [_to8(f) for f in (*loaded, *unloaded[1:])]
     truths = [*wrenches, *[np.zeros(6)] * (len(unloaded) - 1)]
     folder = tmp / "fuzz"
     folder.mkdir()
-    cv2.imwrite(str(tmp / "fuzz_reference.png"), np.round(np.clip(unloaded[0], 0, 1) * 255).astype(np.uint8))
+    cv2.imwrite(str(tmp / "fuzz_reference.png"), _to8(unloaded[0]))
     kinds = {}
     for i in range(count):
         pick = int(rng.integers(len(frames8)))
@@ -359,13 +364,12 @@ def _fuzz_files(rng, device, loaded, unloaded, wrenches, count: int, tmp: Path) 
     ]
     result = _run_cli([*argv, "--out", str(out), "--quiet"])
     result["seconds"] = round(time.perf_counter() - t, 1)
-    rows = _read_out(out) or {}
-    wrenches_out = {}
+    rows, wrenches_out = {}, {}
     if out.exists():
         with open(out, newline="") as f:
-            wrenches_out = {
-                row["frame"]: np.array([float(row[a]) for a in mj.WRENCH_AXES]) for row in csv.DictReader(f)
-            }
+            for row in csv.DictReader(f):
+                rows[row["frame"]] = row["status"]
+                wrenches_out[row["frame"]] = np.array([float(row[a]) for a in mj.WRENCH_AXES])
     result["files"] = count
     result["rows_missing"] = sum(name not in rows for name in kinds)
     by_kind: dict = {}
@@ -393,16 +397,15 @@ def _kill_imports(rng, device, loaded, unloaded, kills: int, tmp: Path) -> dict:
     folder must hold the old dataset or the new one, whole."""
     device_file = tmp / "mid.json"
     mj.save_device(device_file, device)
-    frames8 = [np.round(np.clip(f, 0, 1) * 255).astype(np.uint8) for f in (*unloaded, *loaded)]
+    frames8 = [_to8(f) for f in (*unloaded, *loaded)]
 
-    def recording(root: Path, n: int) -> list[str]:
+    def recording(root: Path, n: int) -> None:
         (root / "images").mkdir(parents=True)
         lines = ["frame,fx,fy,fz,tx,ty,tz"]
         for i in range(n):
             cv2.imwrite(str(root / "images" / f"{i:04d}.png"), frames8[i % len(frames8)])
             lines.append(f"{i:04d}.png,0,0,{0.01 * i:.2f},0,0,0")
         (root / "ft.csv").write_text("\n".join(lines) + "\n")
-        return lines
 
     # Long enough that most of a run is the import's own work, not the interpreter's start.
     old_n, new_n = 40, 80
@@ -416,7 +419,7 @@ def _kill_imports(rng, device, loaded, unloaded, kills: int, tmp: Path) -> dict:
     def run_import(source: Path, overwrite: bool) -> subprocess.Popen:
         argv = ["import", "--frames", str(source / "images"), "--wrench", str(source / "ft.csv")]
         argv += ["--device", str(device_file), "--out", str(target)] + (["--overwrite"] if overwrite else [])
-        return subprocess.Popen([*command, *argv], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        return subprocess.Popen([*command, *argv], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     def state() -> str:
         try:

@@ -390,11 +390,13 @@ class Inverter(eqx.Module):
     def _predict(self, y) -> FringeFields:
         # Observed fields refer to the reference frame's wavevectors (`observe`), as the model does.
         state = LoadState.from_vector(y)
-        contact = state.contact
+        return self.model(state.wrench, self._modelled_contact(state.contact), state.exposure)
+
+    def _modelled_contact(self, contact: Contact) -> Contact:
         # A solve that holds the contact's pressure rounded (the first stages of a cold solve,
-        # `solve_cold`) sees no flatness: its coordinate keeps its start.
-        contact = eqx.tree_at(lambda c: c.flatness, contact, jnp.where(self.fitted_flatness, contact.flatness, 0.0))
-        return self.model(state.wrench, contact, state.exposure)
+        # `solve_cold`; the starts of a two-patch solve) sees no flatness: its coordinate
+        # keeps its start, pulled only by its prior.
+        return eqx.tree_at(lambda c: c.flatness, contact, jnp.where(self.fitted_flatness, contact.flatness, 0.0))
 
     def _unit_noise_residuals(self, samples: int = 48) -> Float[Array, "samples n"]:
         """Data residuals that unit white pixel noise alone produces, `samples` draws.

@@ -90,8 +90,7 @@ class ContactPair(eqx.Module):
         first, second = pair_states(y)
         wrenches = jnp.stack([first.wrench, second.wrench])
         contacts = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), first.contact, second.contact)
-        flatness = jnp.where(self.inverter.fitted_flatness, contacts.flatness, 0.0)
-        contacts = eqx.tree_at(lambda c: c.flatness, contacts, flatness)
+        contacts = self.inverter._modelled_contact(contacts)
         return self.inverter.model.of_contacts(wrenches, contacts, first.exposure)
 
     def _data_residuals(self, y, observed):
