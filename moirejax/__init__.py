@@ -102,6 +102,7 @@ from .observe import (
     predicted_bands as predicted_bands,
     RealBandPass as RealBandPass,
     stray_beat_clearance as stray_beat_clearance,
+    white_noise_map as white_noise_map,
     white_noise_variance as white_noise_variance,
 )
 from .physics import (

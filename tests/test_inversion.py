@@ -270,8 +270,13 @@ def test_the_surface_test_reads_the_moment_and_force_errors_together(mid):
         (lambda f: jnp.ones_like(f), Status.BAD_FRAME),
         (lambda f: f.at[100, 100].set(jnp.nan), Status.NONFINITE),
         (lambda f: jnp.full_like(f, 0.4), Status.BAD_FRAME),
+        # Random pixels pasted over 1.4 % of the field, away from the contact.
+        (
+            lambda f: f.at[300:360, 40:100].set(jax.random.uniform(jax.random.PRNGKey(3), (60, 60), f.dtype)),
+            Status.BAD_FRAME,
+        ),
     ],
-    ids=["black", "saturated", "nan", "no-fringes"],
+    ids=["black", "saturated", "nan", "no-fringes", "corrupt-patch"],
 )
 def test_bad_frames_give_status_not_wrench(mid, inverter, make, status):
     frame = make(render_frame(mid, jnp.array([0.0, 0, 0.8, 0, 0, 0]), Contact()))

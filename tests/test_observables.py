@@ -444,6 +444,27 @@ def test_white_noise_variance_reads_the_camera_noise_under_the_gratings():
     assert float(mj.white_noise_variance(jnp.asarray(pattern))) < 1e-7
 
 
+def test_white_noise_map_reads_each_square_noise_under_the_gratings():
+    # Two gratings; the left half carries white noise ten times the right half's: each
+    # 32 x 32 square reads its own half's variance (no square straddles the two).
+    import moirejax as mj
+
+    rng = np.random.default_rng(6)
+    h, w = 128, 256
+    y, x = np.mgrid[0:h, 0:w] / 16.0
+    pattern = (0.5 + 0.4 * np.cos(2 * np.pi * x / 0.3)) * (0.5 + 0.4 * np.cos(2 * np.pi * (x + y) / 0.35))
+    sigma = np.where(x < w / 32.0, 0.02, 0.002)
+    noise_map = np.asarray(mj.white_noise_map(jnp.asarray(pattern + rng.normal(size=pattern.shape) * sigma), 32))
+    assert noise_map.shape == (4, 8)
+    # An upper estimate: in a square this small the gratings' lines leak into a share of the
+    # bins, and under the quiet half's noise the median sits among them (about twice).
+    assert np.all((noise_map[:, :4] / 0.02**2 > 0.8) & (noise_map[:, :4] / 0.02**2 < 2.5))
+    assert np.all((noise_map[:, 4:] / 0.002**2 > 0.8) & (noise_map[:, 4:] / 0.002**2 < 2.5))
+    assert 40 < np.median(noise_map[:, :4]) / np.median(noise_map[:, 4:]) < 120
+    with pytest.raises(ValueError, match="smaller than one"):
+        mj.white_noise_map(jnp.zeros((16, 64)), 32)
+
+
 def test_long_moire_period_keeps_a_positive_brightness_envelope():
     # A Mid unit whose reference pitch came out 3 % finer than drawn (inside what
     # `perturb_device` draws for the two pitches together) has a moiré period of 7.4 mm

@@ -69,6 +69,7 @@ from ..observe import (
     match_reference_geometry,
     predicted_bands,
     stray_beat_clearance,
+    white_noise_map,
     white_noise_variance,
 )
 from ..physics import Contact, Device, grid_shape
@@ -116,6 +117,16 @@ _FRINGE_AGREEMENT_FLOOR = 0.2
 # fringes into the bands: on the renderer's frames of one load, 1% clipped read within 2%
 # of each axis' range, 3.4% within 7%, 7.3% within 20%, and 15% three and a half ranges off.
 _CLIPPED_SHARE = 0.05
+# Side (pixels) of the squares whose white pixel noise `_Screen.corrupt` compares, and how
+# many times the frame's median square's noise (at least an 8-bit camera's, `_NOISE_FLOOR`)
+# two neighbouring squares must carry for the frame to hold corrupt pixels. On the renderer's
+# `high`-fidelity frames the loudest square carried 2-3 times the median without contact or
+# under a sphere inside the paper's ranges, 11-17 under lines, squares and 8-10 N presses (the
+# fringes' own leakage); one stuck-white pixel 55 times, in one square. A patch of random
+# pixels over 1% of the field carried 1000-1200 times.
+_NOISE_BLOCK = 32
+_CORRUPT_NOISE_RATIO = 100.0
+_NOISE_FLOOR = (2.0 / 255.0) ** 2
 # The most contact light a frame may be explained with, in units of the device's (glow and
 # rim, `Inverter.contact_light_scale`): units scatter between none and a few times the
 # nominal; more than this is a load that the light would be made to stand in for.
@@ -709,13 +720,15 @@ class Inverter(eqx.Module):
         weight = self.fringe_weight.astype(ratio.dtype)
         unit_ratio = ratio * jax.lax.rsqrt(ratio.real**2 + ratio.imag**2 + 1e-30).astype(ratio.dtype)
         agreement = jnp.abs(jnp.sum(unit_ratio * weight, axis=(1, 2))) / jnp.sum(self.fringe_weight, axis=(1, 2))
+        clean = jnp.where(jnp.isfinite(frame), frame, 0.0)
         screen = _Screen(
             finite=finite,
             dark=jnp.max(sample) < 0.02,
             saturated=jnp.mean(sample >= 0.995) > _CLIPPED_SHARE,
             foreign=(contrast < 0.2) | jnp.any(agreement < _FRINGE_AGREEMENT_FLOOR),
             disagrees=jnp.any(agreement < _FRINGE_AGREEMENT),
-            noise_variance=jnp.where(finite, white_noise_variance(jnp.where(jnp.isfinite(frame), frame, 0.0)), 0.0),
+            corrupt=_corrupt_pixels(clean),
+            noise_variance=jnp.where(finite, white_noise_variance(clean), 0.0),
         )
         r_zero = self._zero_residuals(observed)
         # Robust noise level: the median absolute whitened phase residual of zero load (most
@@ -992,7 +1005,8 @@ def _bands_at_state(
 class _Screen(eqx.Module):
     """What a frame shows before any solve: finite pixels, too dark, too many pixels clipped,
     not this unit's fringes (too faint, or of a phase unrelated to the reference's: another
-    scene, noise), and the variance of its white pixel noise. A frame whose phase agrees
+    scene, noise), part of it corrupt (pixel noise far above the rest's), and the variance of
+    its white pixel noise. A frame whose phase agrees
     with the reference's less than a light press's does (`disagrees`: a grasp load, or not
     this unit's fringes) is solved, and refused afterwards unless a load explains it."""
 
@@ -1001,11 +1015,26 @@ class _Screen(eqx.Module):
     saturated: Bool[Array, ""]
     foreign: Bool[Array, ""]
     disagrees: Bool[Array, ""]
+    corrupt: Bool[Array, ""]
     noise_variance: Float[Array, ""]
 
     @property
     def refused(self) -> Bool[Array, ""]:
-        return self.dark | self.saturated | self.foreign
+        return self.dark | self.saturated | self.foreign | self.corrupt
+
+
+def _corrupt_pixels(frame: Float[Array, "h w"]) -> Bool[Array, ""]:
+    """Whether two neighbouring squares of `frame` carry white pixel noise far above its
+    median square's (`_CORRUPT_NOISE_RATIO`): pixels that no camera and no load put there
+    (a transmission fault, a patch of another image). Where the phase is read from such
+    pixels, a fit can place an absurd load that explains the rest of the field; the fringe
+    phase there is noise, and the misfit tests, which compare the phase with its change,
+    do not see data that is missing."""
+    if frame.shape[0] < _NOISE_BLOCK or frame.shape[1] < _NOISE_BLOCK:
+        return jnp.asarray(False)
+    noise = white_noise_map(frame, _NOISE_BLOCK)
+    loud = noise > _CORRUPT_NOISE_RATIO * jnp.maximum(jnp.median(noise), _NOISE_FLOOR)
+    return jnp.any(loud[1:] & loud[:-1]) | jnp.any(loud[:, 1:] & loud[:, :-1])
 
 
 def _median(values: Float[Array, " n"]) -> Float[Array, ""]:

@@ -166,8 +166,9 @@ _MESSAGES = {
     Status.NONFINITE: "frame or solution contains NaN/inf; no wrench",
     Status.NO_CONTACT: "no contact detected; wrench is zero",
     Status.BAD_FRAME: (
-        "frame is black, more than 5% clipped at white (reduce the exposure), or does not show this unit's "
-        "fringes (its fringe phase disagrees with the reference's and no load explains it); no wrench"
+        "frame is black, more than 5% clipped at white (reduce the exposure), does not show this unit's "
+        "fringes (its fringe phase disagrees with the reference's and no load explains it), or holds corrupt "
+        "pixels (a region with pixel noise a hundred times the rest's); no wrench"
     ),
     Status.WRONG_SIZE: "frame has the wrong size for this device; no wrench",
     Status.UNREADABLE: "frame could not be read or decoded; no wrench",

@@ -27,6 +27,7 @@ from ._observables import (
     NumpyDemodulator as NumpyDemodulator,
     raised_cosine_window as raised_cosine_window,
     RealBandPass as RealBandPass,
+    white_noise_map as white_noise_map,
     white_noise_variance as white_noise_variance,
 )
 from ._peaks import spectral_peak as spectral_peak, windowed_power_spectrum as windowed_power_spectrum

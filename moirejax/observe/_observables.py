@@ -1271,6 +1271,35 @@ def white_noise_variance(frame: Float[Array, "h w"]) -> Float[Array, ""]:
     return jnp.median(power) / (math.log(2) * jnp.sum(taper**2))
 
 
+def white_noise_map(frame: Float[Array, "h w"], block: int = 32) -> Float[Array, "rows cols"]:
+    r"""The variance of a frame's white pixel noise in each `block` × `block` square of it, by
+    the estimator of [`white_noise_variance`][] applied to each square on its own (pixels
+    beyond the last whole square are left out).
+
+    Camera noise varies over a frame only as its brightness does, by a few times; a part of
+    the frame whose pixels are corrupt (a transmission fault, a foreign patch pasted in)
+    carries pixel-scale noise tens to hundreds of times the rest's. A single defective pixel
+    counts as white noise too, but in one square only.
+
+    In a square this small the fringes' spectral lines leak into a share of its bins, so the
+    median can sit among them: an upper estimate, up to about twice the noise where strong
+    fringes meet faint noise, the same for every square of like fringes.
+
+    **Raises:** `ValueError` (trace time) for a frame smaller than one square.
+    """
+    h, w = frame.shape
+    rows, cols = h // block, w // block
+    if rows < 1 or cols < 1:
+        raise ValueError(f"frame of shape {frame.shape} is smaller than one {block}x{block} square")
+    dtype = frame.dtype
+    squares = frame[: rows * block, : cols * block].reshape(rows, block, cols, block).transpose(0, 2, 1, 3)
+    squares = squares - jnp.mean(squares, axis=(2, 3), keepdims=True)
+    taper = jnp.outer(jnp.hanning(block), jnp.hanning(block)).astype(dtype)
+    spectrum = jnp.fft.rfft2(squares * taper[None, None])
+    power = (spectrum.real**2 + spectrum.imag**2).reshape(rows, cols, -1)
+    return jnp.median(power, axis=-1) / (math.log(2) * jnp.sum(taper**2))
+
+
 class NumpyDemodulator:
     """Plain numpy/OpenCV implementation of [`moirejax.Demodulator`][]: the latency floor.
 
