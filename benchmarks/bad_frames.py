@@ -12,7 +12,8 @@ draws `--n` random instances:
   (a random crop, resized to the frame); loaded frames of another design (`dense`,
   `sparse`) = the wrong unit; black; white; an over-exposed loaded frame (gain 4,
   clipped); a dark blob over half the field of a loaded frame; a loaded frame rolled by
-  3-12 pixels on each axis (a camera that moved); a loaded frame with 0.5 % NaN pixels.
+  3-12 pixels on each axis (a camera that moved); a loaded frame with 0.5 % NaN pixels; a
+  loaded frame with random 8-bit pixels pasted over a rectangle of 1-25 % of the field.
 - **valid** frames, which must: noisy loaded frames of the unit (loads of the `mixed`
   schedule, inside the paper's ranges) must get a believed wrench, and unloaded frames
   must be called `no_contact`.
@@ -515,6 +516,15 @@ def main(argv=None):
         dy, dx = rng.integers(3, 13, 2) * rng.choice([-1, 1], 2)
         return np.roll(frame, (int(dy), int(dx)), axis=(0, 1))
 
+    def with_patch(frame):
+        # Random 8-bit pixels over 1-25 % of the field, as `--fuzz` pastes them.
+        frame = frame.copy()
+        h, w = frame.shape
+        ph, pw = int(h * rng.uniform(0.1, 0.5)), int(w * rng.uniform(0.1, 0.5))
+        top, left = int(rng.integers(0, h - ph)), int(rng.integers(0, w - pw))
+        frame[top : top + ph, left : left + pw] = rng.integers(0, 256, (ph, pw)) / 255
+        return frame
+
     def with_nan(frame):
         frame = frame.copy()
         frame.flat[rng.choice(frame.size, frame.size // 200, replace=False)] = np.nan
@@ -536,6 +546,7 @@ def main(argv=None):
         "occluded_half": ("invalid", [noisy(_blob(rng, f)) for f in loaded], truths),
         "rolled": ("invalid", [rolled(f) for f in loaded], truths),
         "nan_pixels": ("invalid", [with_nan(f) for f in loaded], truths),
+        "random_patch": ("invalid", [noisy(with_patch(f)) for f in loaded], truths),
     }
 
     report: dict = {"n": n, "seed": args.seed}
