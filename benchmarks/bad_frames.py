@@ -321,13 +321,17 @@ def _random_fault(rng: np.random.Generator, good: bytes, frame8: np.ndarray) -> 
         h, w = frame8.shape
         image = frame8[: int(rng.integers(h // 2, h)), : int(rng.integers(w // 2, w))]
         return kind, cv2.imencode(".png", image)[1].tobytes()
-    # A valid image with a random patch (1-25 % of the field) of other pixels.
+    return kind, cv2.imencode(".png", _paste_random_pixels(rng, frame8))[1].tobytes()
+
+
+def _paste_random_pixels(rng: np.random.Generator, frame8: np.ndarray) -> np.ndarray:
+    """A copy of the 8-bit `frame8` with random pixels over a rectangle of 1-25 % of the field."""
     image = frame8.copy()
     h, w = image.shape
     ph, pw = int(h * rng.uniform(0.1, 0.5)), int(w * rng.uniform(0.1, 0.5))
     top, left = int(rng.integers(0, h - ph)), int(rng.integers(0, w - pw))
     image[top : top + ph, left : left + pw] = rng.integers(0, 256, (ph, pw), dtype=np.uint8)
-    return kind, cv2.imencode(".png", image)[1].tobytes()
+    return image
 
 
 def _fuzz_files(rng, device, loaded, unloaded, wrenches, count: int, tmp: Path) -> dict:
@@ -516,15 +520,6 @@ def main(argv=None):
         dy, dx = rng.integers(3, 13, 2) * rng.choice([-1, 1], 2)
         return np.roll(frame, (int(dy), int(dx)), axis=(0, 1))
 
-    def with_patch(frame):
-        # Random 8-bit pixels over 1-25 % of the field, as `--fuzz` pastes them.
-        frame = frame.copy()
-        h, w = frame.shape
-        ph, pw = int(h * rng.uniform(0.1, 0.5)), int(w * rng.uniform(0.1, 0.5))
-        top, left = int(rng.integers(0, h - ph)), int(rng.integers(0, w - pw))
-        frame[top : top + ph, left : left + pw] = rng.integers(0, 256, (ph, pw)) / 255
-        return frame
-
     def with_nan(frame):
         frame = frame.copy()
         frame.flat[rng.choice(frame.size, frame.size // 200, replace=False)] = np.nan
@@ -546,7 +541,7 @@ def main(argv=None):
         "occluded_half": ("invalid", [noisy(_blob(rng, f)) for f in loaded], truths),
         "rolled": ("invalid", [rolled(f) for f in loaded], truths),
         "nan_pixels": ("invalid", [with_nan(f) for f in loaded], truths),
-        "random_patch": ("invalid", [noisy(with_patch(f)) for f in loaded], truths),
+        "random_patch": ("invalid", [_paste_random_pixels(rng, _to8(f)) / 255 for f in loaded], truths),
     }
 
     report: dict = {"n": n, "seed": args.seed}
