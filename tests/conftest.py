@@ -1,3 +1,4 @@
+import gc
 import os
 import shutil
 import tempfile
@@ -36,6 +37,21 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 def pytest_unconfigure(config):
     if _OWN_CACHE is not None:
         shutil.rmtree(_OWN_CACHE, ignore_errors=True)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Drop every compiled program at the end of each test module.
+
+    XLA's CPU backend maps each compiled program into memory in a few pieces, and a worker
+    that runs half the suite compiles thousands of programs: without this its map count
+    reaches the kernel's `vm.max_map_count` (65530 by default) near the end of the run, and
+    the next compilation aborts the worker. Programs shared across modules are few, so the
+    recompilation this costs is small.
+    """
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture
