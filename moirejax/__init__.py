@@ -41,6 +41,7 @@ from .data import (
     Dataset as Dataset,
     DatasetWriter as DatasetWriter,
     export_recording as export_recording,
+    FrameSequence as FrameSequence,
     fringe_change as fringe_change,
     FtAlignment as FtAlignment,
     import_recording as import_recording,

@@ -116,6 +116,26 @@ def test_frames_are_read_lazily(tmp_path, monkeypatch):
     assert [len(b.indices) for b in batches] == [3, 1]
 
 
+def test_a_frame_sequence_reads_its_frames_in_its_order_when_indexed(tmp_path, monkeypatch):
+    written, _ = _write(tmp_path / "ds", n=7)
+    reads = []
+    load_gray = _dataset._load_gray
+    monkeypatch.setattr(_dataset, "_load_gray", lambda path: reads.append(path.name) or load_gray(path))
+    ds = open_dataset(tmp_path / "ds")
+    frames = ds.frames([5, 2, 6])
+    assert reads == [] and len(frames) == 3 and frames.shape == (3, *SHAPE)
+    # 8-bit files: each frame is its written values to the quantisation step.
+    np.testing.assert_allclose(frames[0], written[5], atol=0.5 / 255 + 1e-6)
+    assert reads == ["000005.png"]
+    np.testing.assert_array_equal(frames[1:], np.stack([ds.frame(2), ds.frame(6)]))
+    np.testing.assert_array_equal(np.asarray(frames), np.stack([frame for frame in frames]))
+    assert frames[3:].shape == (0, *SHAPE) and frames[-1].shape == SHAPE
+    with pytest.raises(IndexError, match="frame index 9 out of range for 7 frames"):
+        ds.frames([1, 9])
+    with pytest.raises(IndexError):
+        frames[3]
+
+
 @pytest.mark.parametrize(
     "row, column, text, message",
     [

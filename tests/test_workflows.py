@@ -8,12 +8,15 @@ import os
 import subprocess
 import sys
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import moirejax as mj
 from moirejax._fileio import validate_json
-from moirejax.calibration._calibration import load_recipe, Recipe
+from moirejax.calibration import _calibration
+from moirejax.calibration._calibration import load_recipe, observe_frames, Recipe
 from moirejax.calibration._workflows import calibrate, evaluate, transfer
 from moirejax.cli._docs import cli_reference
 from moirejax.cli._main import main
@@ -80,6 +83,22 @@ def test_calibrate_evaluate_transfer(datasets):
     assert head_b is None and fitted_b.layout == fitted.layout
     assert json.loads((root / "fit_b.json").read_text())["calibration"]["recipe"] == "pinned"
     assert float(fitted_b.elastomer.E) == pytest.approx(float(fitted.elastomer.E), rel=1e-3)
+
+
+def test_a_calibration_keeps_the_fringe_fields_of_its_frames_read_a_chunk_at_a_time(datasets, monkeypatch, caplog):
+    dataset = Dataset(datasets / "cal")
+    inverter = mj.Inverter(mj.load_device(datasets / "mid.json"), reference=dataset.frame(0))
+    frames = dataset.frames()
+    monkeypatch.setattr(_calibration, "_OBSERVE_CHUNK", 5)
+    with jax.log_compiles(), caplog.at_level("WARNING"):
+        chunked = observe_frames(inverter, frames)
+    # 16 frames, 5 at a time: one program for the three full chunks, one for the last frame.
+    compiles = [r for r in caplog.records if r.getMessage().startswith("Compiling jit(_observe_chunk)")]
+    assert len(compiles) == 2, [r.getMessage()[:80] for r in compiles]
+    whole = jax.lax.map(inverter.observe, jnp.asarray(np.asarray(frames), inverter.device.p1.dtype))
+    assert tree_allclose(chunked, whole)
+    with pytest.raises(ValueError, match="no frames"):
+        observe_frames(inverter, frames[:0])
 
 
 def test_spanning_frames_load_every_axis():

@@ -30,6 +30,7 @@ residual variance; the covariance between the two blocks is not estimated.
 
 import dataclasses
 import importlib.resources
+from collections.abc import Sequence
 from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
+from jaxtyping import Array, Float
 
 from .._conventions import NMM_PER_NM, WRENCH_SCALE
 from .._fileio import DataError, read_json
@@ -296,10 +298,36 @@ class CalibrationResult:
     inverter: Inverter
 
 
+# Frames demodulated per compiled call when a calibration reads its frames: bounds the
+# memory a large set needs to a chunk of frames and the fringe fields of all.
+_OBSERVE_CHUNK = 64
+
+
+@eqx.filter_jit
+def _observe_chunk(inverter: Inverter, frames: Float[Array, "b h w"]) -> FringeFields:
+    return jax.lax.map(inverter.observe, frames)
+
+
+def observe_frames(inverter: Inverter, frames: np.ndarray | Sequence) -> FringeFields:
+    """The fringe fields of every frame of `frames` (`(n, h, w)`: an array, or a sequence
+    that reads frames when indexed), demodulated a chunk at a time: what a calibration keeps
+    of its frames. Every chunk but a short last one runs one compiled program."""
+    n = len(frames)
+    if n == 0:
+        raise ValueError("no frames to observe")
+    dtype = np.asarray(inverter.device.p1).dtype
+    size = min(n, _OBSERVE_CHUNK)
+    parts = []
+    for start in range(0, n, size):
+        chunk = np.asarray(frames[start : start + size], dtype=dtype)
+        parts.append(jax.device_get(_observe_chunk(inverter, jnp.asarray(chunk))))
+    return jax.tree_util.tree_map(lambda *a: jnp.asarray(np.concatenate(a)), *parts)
+
+
 def fit_physical_parameters(
     nominal: Device,
     reference: np.ndarray,
-    frames: np.ndarray,
+    frames: np.ndarray | Sequence,
     wrenches: np.ndarray,
     recipe: "Recipe | str | Path" = "unit",
     *,
@@ -312,7 +340,10 @@ def fit_physical_parameters(
 
     - `nominal`: the starting [`Device`][] (the design, or another unit's fit).
     - `reference`: a no-contact frame of the unit (the mean of several is better).
-    - `frames`: `(n, h, w)` frames in contact; `wrenches`: `(n, 6)` reference readings.
+    - `frames`: `(n, h, w)` frames in contact, an array or a sequence such as
+      [`Dataset.frames`][moirejax.Dataset.frames] that reads them when indexed (they are
+      read a chunk at a time, and only their fringe fields are kept); `wrenches`: `(n, 6)`
+      reference readings.
     - `recipe`: a [`Recipe`][] or anything [`load_recipe`][] takes. Its priors centre on
       the parameters of `nominal`.
 
@@ -324,7 +355,7 @@ def fit_physical_parameters(
     recipe = load_recipe(recipe)
     inverter = Inverter(nominal, reference=reference)
     dtype = np.asarray(inverter.device.p1).dtype
-    observed = jax.lax.map(inverter.observe, jnp.asarray(frames, dtype=dtype))
+    observed = observe_frames(inverter, frames)
     latents = latents_from_wrench(np.asarray(wrenches), dtype)
     # Every parameter is fitted to the fringe phase, the inversion's observable, which a
     # unit's photometry moves only through a contact's light: the mechanics and geometry

@@ -13,7 +13,7 @@ report compares with.
 import hashlib
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -170,24 +170,24 @@ def fit_tilt_matrix(x0: np.ndarray, y0: np.ndarray, moments: np.ndarray, device)
     return coef[:2].T, float(r2)
 
 
-def ridge_baseline(train_frames, train_wrench, test_frames, reference, *, size: int = 24) -> np.ndarray:
-    """A learned baseline: ridge regression from downsampled `frame - reference` to the wrench.
-
-    The regularisation is chosen by leave-one-out (closed form for ridge).
-    """
+def ridge_features(frames, reference: np.ndarray, *, size: int = 24) -> np.ndarray:
+    """The pixel-ridge baseline's features: `frame - reference` area-averaged to
+    `size x size`, one row per frame of `frames` (any iterable of frames; each is read once)."""
     import cv2
 
-    def features(frames):
-        return np.stack(
-            [
-                cv2.resize(np.asarray(f, np.float32) - reference, (size, size), interpolation=cv2.INTER_AREA).ravel()
-                for f in frames
-            ]
-        )
+    reference = np.asarray(reference, np.float32)
+    rows = [
+        cv2.resize(np.asarray(f, np.float32) - reference, (size, size), interpolation=cv2.INTER_AREA).ravel()
+        for f in frames
+    ]
+    return np.stack(rows) if rows else np.zeros((0, size * size), np.float32)
 
-    X = features(train_frames)
-    mean_x, mean_y = X.mean(0), train_wrench.mean(0)
-    Xc, Yc = X - mean_x, train_wrench - mean_y
+
+def _ridge_predict(train_x: np.ndarray, train_y: np.ndarray, test_x: np.ndarray) -> np.ndarray:
+    """Ridge regression from `train_x` to `train_y`, its regularisation chosen by
+    leave-one-out (closed form for ridge), applied to `test_x`."""
+    mean_x, mean_y = train_x.mean(0), train_y.mean(0)
+    Xc, Yc = train_x - mean_x, train_y - mean_y
     U, s, Vt = np.linalg.svd(Xc, full_matrices=False)
     best = (np.inf, 1.0)
     for lam in 10.0 ** np.arange(-6, 3):
@@ -199,13 +199,23 @@ def ridge_baseline(train_frames, train_wrench, test_frames, reference, *, size: 
             best = (loo, lam)
     lam = best[1]
     coef = Vt.T @ ((s / (s**2 + lam))[:, None] * (U.T @ Yc))
-    return (features(test_frames) - mean_x) @ coef + mean_y
+    return (test_x - mean_x) @ coef + mean_y
+
+
+def ridge_baseline(train_frames, train_wrench, test_frames, reference, *, size: int = 24) -> np.ndarray:
+    """A learned baseline: ridge regression from downsampled `frame - reference` to the wrench.
+
+    The regularisation is chosen by leave-one-out (closed form for ridge).
+    """
+    train_x = ridge_features(train_frames, reference, size=size)
+    return _ridge_predict(train_x, np.asarray(train_wrench), ridge_features(test_frames, reference, size=size))
 
 
 def cross_validated_ridge_r2(
-    frames: np.ndarray, wrenches: np.ndarray, reference: np.ndarray, sizes: tuple[int, ...], *, folds: int = 5
+    features: np.ndarray, wrenches: np.ndarray, sizes: tuple[int, ...], *, folds: int = 5
 ) -> dict[str, dict[str, float]]:
-    """Five-fold cross-validated R² of the [`ridge_baseline`][] trained on `n` frames, per `n`.
+    """Five-fold cross-validated R² of the [`ridge_baseline`][] trained on `n` frames, per `n`,
+    from every frame's `ridge_features`.
 
     Each fold is predicted by a model trained on `n` random frames of the other folds (at
     most all of them), and R² is taken over the pooled predictions of every frame: a single
@@ -213,7 +223,7 @@ def cross_validated_ridge_r2(
     almost no variation of some axis, and its R² then means nothing.
     """
     rng = np.random.default_rng(1)
-    fold = rng.permutation(len(frames)) % folds
+    fold = rng.permutation(len(features)) % folds
     out = {}
     for n in sizes:
         n_train = min(n, int(np.sum(fold != 0)))
@@ -223,7 +233,7 @@ def cross_validated_ridge_r2(
         for k in range(folds):
             train = rng.permutation(np.flatnonzero(fold != k))[:n_train]
             test = fold == k
-            predicted[test] = ridge_baseline(frames[train], wrenches[train], frames[test], reference)
+            predicted[test] = _ridge_predict(features[train], wrenches[train], features[test])
         out[str(n_train)] = wrench_metrics(wrenches, predicted)["r2"]
     return out
 
@@ -236,15 +246,15 @@ def heldout_ridge_r2(train: str | Path, test: str | Path, sizes: tuple[int, ...]
     reference = dataset_reference(train_set)
     train_idx = _select(train_set, None)
     train_idx = train_idx[np.random.default_rng(1).permutation(len(train_idx))[: max(sizes)]]
-    train_frames = np.stack([train_set.frame(int(i)) for i in train_idx])
+    train_x = ridge_features(train_set.frames(train_idx), reference)
     test_idx = _select(test_set, None)
     # Each unit's frames are taken relative to its own no-contact reference.
     shift = dataset_reference(test_set) - reference
-    test_frames = [test_set.frame(int(i)) - shift for i in test_idx]
+    test_x = ridge_features((frame - shift for frame in test_set.frames(test_idx)), reference)
     out = {}
     for n in sizes:
         n = min(n, len(train_idx))
-        predicted = ridge_baseline(train_frames[:n], train_set.wrenches[train_idx[:n]], test_frames, reference)
+        predicted = _ridge_predict(train_x[:n], train_set.wrenches[train_idx[:n]], test_x)
         out[str(n)] = wrench_metrics(test_set.wrenches[test_idx], predicted)["r2"]
     return out
 
@@ -320,7 +330,7 @@ MIN_CALIBRATION_FRAMES = 10
 _EXCITATION_FRACTION = 1e-3
 
 
-def identification_problems(frames: np.ndarray, wrenches: np.ndarray, reference: np.ndarray) -> dict:
+def identification_problems(frames: np.ndarray | Sequence, wrenches: np.ndarray, reference: np.ndarray) -> dict:
     """What a set of calibration frames cannot identify, checked before the fit.
 
     `refuse` lists reasons no fit can be trusted: fewer than
@@ -331,12 +341,16 @@ def identification_problems(frames: np.ndarray, wrenches: np.ndarray, reference:
     """
     n = len(frames)
     refuse = []
-    distinct = len({hashlib.sha1(np.ascontiguousarray(frame)).digest() for frame in frames})
+    hashes, changed = set(), 0
+    for frame in frames:  # one pass: a sequence that reads its frames reads each once
+        frame = np.ascontiguousarray(frame)
+        hashes.add(hashlib.sha1(frame).digest())
+        changed += bool(np.any(frame != reference))
+    distinct = len(hashes)
     if distinct < MIN_CALIBRATION_FRAMES:
         refuse.append(
             f"only {distinct} distinct images among {n} frames in contact (identical frames cannot identify a fit)"
         )
-    changed = sum(bool(np.any(frame != reference)) for frame in frames)
     if changed < MIN_CALIBRATION_FRAMES:
         refuse.append(f"only {changed} of {n} frames in contact differ from the no-contact reference")
     spread = np.std(np.asarray(wrenches, float), axis=0) / WRENCH_SCALE
@@ -381,7 +395,7 @@ def calibrate(
         raise DataError(
             f"{data}: only {len(idx)} frames in contact; calibration needs at least {MIN_CALIBRATION_FRAMES}"
         )
-    frames = np.stack([dataset.frame(int(i)) for i in idx])
+    frames = dataset.frames(idx)
     wrenches = dataset.wrenches[idx]
     identification = identification_problems(frames, wrenches, reference)
     if identification["refuse"] and not force:
@@ -414,7 +428,7 @@ def calibrate(
     fitted_device = eqx_replace_tilt(result.device, tilt)
     metrics_physics = wrench_metrics(wrenches, physical.wrench, physical.sigma)
     metrics = wrench_metrics(wrenches, corrected, physical.sigma)
-    baselines = cross_validated_ridge_r2(frames, wrenches, reference, baseline_sizes)
+    baselines = cross_validated_ridge_r2(ridge_features(frames, reference), wrenches, baseline_sizes)
     report_dir = _report_dir(out)
     parameters = _parameter_table(nominal, fitted_device, result.uncertainty, dataset.true_device)
     worse_than_mean = [
@@ -537,7 +551,7 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
     reference = dataset_reference(dataset)
     idx = _select(dataset, None)
     inverter = Inverter(device, reference=reference)
-    result = invert(inverter, (dataset.frame(int(i)) for i in idx), progress=progress, desc="evaluate")
+    result = invert(inverter, dataset.frames(idx), progress=progress, desc="evaluate")
     wrench = _apply_head(head, result)
     truth = dataset.wrenches[idx]
     metrics = wrench_metrics(truth, wrench, result.sigma)
@@ -584,7 +598,7 @@ def transfer(
     dataset = Dataset(data)
     reference = dataset_reference(dataset)
     idx = _select(dataset, max_frames)
-    frames = np.stack([dataset.frame(int(i)) for i in idx])
+    frames = dataset.frames(idx)
     wrenches = dataset.wrenches[idx]
     result = fit_physical_parameters(device, reference, frames, wrenches, recipe, progress=progress)
     head_check = None

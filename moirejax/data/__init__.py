@@ -9,6 +9,7 @@ from ._dataset import (
     Dataset as Dataset,
     DatasetWriter as DatasetWriter,
     export_recording as export_recording,
+    FrameSequence as FrameSequence,
     IMAGE_SUFFIXES as IMAGE_SUFFIXES,
     import_recording as import_recording,
     ImportReport as ImportReport,

@@ -28,7 +28,7 @@ import os
 import re
 import shutil
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal, NamedTuple
 
@@ -806,6 +806,15 @@ class Dataset:
         [`DataError`][] names a bad file."""
         return self._read(self.frame_path(i), color=False)
 
+    def frames(self, indices: npt.ArrayLike | None = None) -> "FrameSequence":
+        """Frames `indices` (all by default), in that order, as a [`FrameSequence`][]: a
+        sequence that reads each frame from disk when it is indexed, so that a job over
+        thousands of frames holds only the ones it is working on."""
+        idx = np.arange(len(self)) if indices is None else np.asarray(indices, dtype=np.int64).reshape(-1)
+        for i in idx:
+            self._index(int(i))
+        return FrameSequence(self, idx)
+
     def color_frame(self, i: int) -> Float32[np.ndarray, "h w 3"]:
         """Read frame `i` as a float32 BGR image in [0, 1] (a gray frame in every channel)."""
         return self._read(self.frame_path(i), color=True)
@@ -1262,3 +1271,35 @@ def export_recording(
             row.append(int(contact[i]))
         rows.append(row)
     atomic_write_text(wrench_csv, _format_csv(header, rows))
+
+
+class FrameSequence(Sequence):
+    """Frames of a [`Dataset`][], read from disk when indexed (see [`Dataset.frames`][moirejax.Dataset.frames]).
+
+    `frames[i]` is one `(h, w)` float32 frame in [0, 1]; a slice or an array of positions
+    gives those frames stacked into `(k, h, w)`. `np.asarray(frames)` reads them all.
+    """
+
+    def __init__(self, dataset: Dataset, indices: np.ndarray):
+        self.dataset = dataset
+        self.indices = indices
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, item: Any) -> Any:
+        if isinstance(item, int | np.integer):
+            return self.dataset.frame(int(self.indices[item]))
+        chosen = self.indices[item]
+        h, w = self.dataset.frame_shape
+        if len(chosen) == 0:
+            return np.zeros((0, h, w), np.float32)
+        return np.stack([self.dataset.frame(int(i)) for i in chosen])
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        frames = self[:]
+        return frames if dtype is None else frames.astype(dtype)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self), *self.dataset.frame_shape)
