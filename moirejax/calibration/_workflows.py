@@ -428,7 +428,9 @@ def calibrate(
     fitted_device = eqx_replace_tilt(result.device, tilt)
     metrics_physics = wrench_metrics(wrenches, physical.wrench, physical.sigma)
     metrics = wrench_metrics(wrenches, corrected, physical.sigma)
-    baselines = cross_validated_ridge_r2(ridge_features(frames, reference), wrenches, baseline_sizes)
+    # Each frame is read once more for the baseline's features, and not at all without one.
+    features = ridge_features(frames, reference) if baseline_sizes else np.zeros((len(idx), 0))
+    baselines = cross_validated_ridge_r2(features, wrenches, baseline_sizes)
     report_dir = _report_dir(out)
     parameters = _parameter_table(nominal, fitted_device, result.uncertainty, dataset.true_device)
     worse_than_mean = [
