@@ -10,11 +10,14 @@ import json
 import os
 import shutil
 import tempfile
+import warnings
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+import jax
 import jsonschema
+import numpy as np
 
 
 # The process umask, read once: os.umask can only be read by setting it.
@@ -270,6 +273,56 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """[`atomic_write_bytes`][] for UTF-8 text."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def fingerprint(*trees: Any) -> str:
+    """A SHA-256 of the arrays and the structure of pytrees (devices, inverters, frame
+    indices): equal for two runs whose work is interchangeable, part for part."""
+    digest = hashlib.sha256()
+    for tree in trees:
+        leaves, structure = jax.tree_util.tree_flatten(tree)
+        digest.update(str(structure).encode())
+        for leaf in leaves:
+            array = np.asarray(leaf)
+            digest.update(f"{array.dtype}{array.shape}".encode())
+            digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
+
+
+PLAN_NAME = "plan.json"
+
+
+def open_parts(parts: Path, plan: dict, *, argument: str, restart_other: bool = False) -> bool:
+    """The folder `parts` that keeps the finished parts of a long job beside its output
+    (`OUT.parts/`), so that a rerun after an interruption redoes only what is missing.
+
+    `plan` says what the job is (its inputs and settings, as JSON); the folder is made with
+    it, or, when it exists, must hold a job of the same plan. Parts of another plan raise
+    [`DataError`][], or with `restart_other` are dropped with a [`DataWarning`][] (for a
+    job whose rerun with new inputs means to replace them). Returns whether the folder
+    already held this plan's parts. Each part is written with [`atomic_write_bytes`][], so
+    a part on disk is whole.
+    """
+    plan_file = parts / PLAN_NAME
+    if parts.exists():
+        try:
+            previous = json.loads(plan_file.read_text())
+        except (OSError, ValueError):
+            previous = None
+        if previous == plan:
+            return True
+        if not restart_other:
+            raise DataError(
+                f"{parts}: parts of a different run (other inputs or settings); remove the folder to start afresh"
+            )
+        warnings.warn(f"{parts}: parts of a different run dropped; this run starts afresh", DataWarning, stacklevel=3)
+        shutil.rmtree(parts)
+    try:
+        parts.mkdir(parents=True)
+    except OSError as e:
+        raise OutputError(f"{parts}: cannot be made ({e.strerror or e})", argument=argument) from e
+    atomic_write_text(plan_file, json.dumps(plan, indent=1))
+    return False
 
 
 @functools.cache

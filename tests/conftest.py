@@ -23,13 +23,13 @@ _OWN_CACHE = None
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _OWN_CACHE = os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="moirejax-test-jax-cache-")
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
-# The test processes themselves neither read nor write the cache; the CLI, notebook and
-# cluster processes the tests start share it. Full local runs lost an xdist worker inside
-# JAX 0.10's CPU executable serialisation, compilation and deserialisation of cache entries
-# (never when the test ran alone), so the long-lived worker processes keep out of it. The
-# same aborts, inside compilation alone, were later traced to the worker's memory maps (see
-# `_release_compiled_programs`); whether the cache is safe with that fixed is not measured.
-jax.config.update("jax_enable_compilation_cache", False)
+# The test workers read and write the same cache: a test module's programs are dropped at
+# its end (`_release_compiled_programs`), and the next module that compiles the same
+# inversion loads it instead of compiling it again. Workers were once kept out of it after
+# aborts inside XLA that turned out to be the memory-map exhaustion that fixture prevents;
+# with both, a full run's largest worker held 24,583 memory maps (the kernel allows 65,530).
+# An entry read while another process is still writing it fails to decompress, and JAX
+# then warns and compiles.
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")

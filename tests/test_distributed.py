@@ -8,9 +8,9 @@ import os
 import pytest
 
 import moirejax as mj
+from moirejax._fileio import fingerprint, PLAN_NAME
 from moirejax.cli import main
 from moirejax.inverse import find_reference
-from moirejax.inverse._distributed import _fingerprint, PLAN_NAME
 
 
 pytest.importorskip("distributed")
@@ -59,7 +59,7 @@ def test_a_rerun_keeps_the_segments_a_previous_run_finished(recording):
         "frames": 7,
         "segment": SEGMENT,
         "batch": 1,
-        "inverter": _fingerprint(inverter, None),
+        "inverter": fingerprint(inverter, None),
     }
     (parts / PLAN_NAME).write_text(json.dumps(plan))
     # Segment 3..5 finished before the run was interrupted; marked, to see that it is not redone.

@@ -5,6 +5,7 @@ import importlib.resources
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 
@@ -21,6 +22,7 @@ from moirejax.calibration._workflows import calibrate, evaluate, transfer
 from moirejax.cli._docs import cli_reference
 from moirejax.cli._main import main
 from moirejax.data._dataset import Dataset, export_recording
+from moirejax.inverse import invert
 from moirejax.simulate._simulate import simulate_dataset
 
 from .helpers import tree_allclose
@@ -43,17 +45,54 @@ def datasets(tmp_path_factory):
 
 
 @pytest.mark.usefixtures("float32", "moire_bands_only")
-def test_calibrate_evaluate_transfer(datasets):
+def test_calibrate_evaluate_transfer(datasets, monkeypatch):
     root = datasets
-    summary = calibrate(
-        root / "mid.json",
-        root / "cal",
-        root / "fit.json",
-        recipe=load_recipe("unit").replace(rounds=1, parameter_frames=8, parameter_steps=4, latent_steps=8),
-        baseline_sizes=(10,),
-        progress=False,
-    )
-    fitted, head = mj.calibration._workflows.load_calibrated(root / "fit.json")
+    workflows = mj.calibration._workflows
+    recipe = load_recipe("unit").replace(rounds=1, parameter_frames=8, parameter_steps=4, latent_steps=8)
+
+    def run():
+        return calibrate(
+            root / "mid.json", root / "cal", root / "fit.json", recipe=recipe, baseline_sizes=(10,), progress=False
+        )
+
+    # The work kept in fit.json.parts/ as it is done: copied here before the run clears it,
+    # to resume from below.
+    parts = root / "fit.json.parts"
+    write_fit_set = workflows._write_fit_set
+
+    def write_and_keep_parts(*args):
+        write_fit_set(*args)
+        shutil.copytree(parts, root / "kept.parts")
+
+    monkeypatch.setattr(workflows, "_SOLVED_PER_PART", 4)
+    with monkeypatch.context() as m:
+        m.setattr(workflows, "_write_fit_set", write_and_keep_parts)
+        summary = run()
+    assert not parts.exists()
+    (root / "kept.parts").rename(parts)
+    solved = sorted(p.name for p in parts.glob("solved-*.npz"))
+    assert (parts / "physical.json").is_file() and solved[:2] == ["solved-000000.npz", "solved-000004.npz"]
+    first = {name: json.loads((root / name).read_text()) for name in ("fit.json", "fit_report/metrics.json")}
+
+    # Interrupted in the cold solves: two parts not yet written, one torn. The rerun does not
+    # fit again, solves only those three parts, writes the same numbers, and clears the parts.
+    for name in solved[2:]:
+        (parts / name).unlink()
+    (parts / solved[1]).write_bytes((parts / solved[1]).read_bytes()[:100])
+    solves = []
+    with monkeypatch.context() as m:
+        m.setattr(workflows, "fit_physical_parameters", lambda *a, **k: pytest.fail("refitted"))
+        m.setattr(
+            workflows, "invert", lambda inverter, frames, **k: solves.append(len(frames)) or invert(inverter, frames)
+        )
+        run()
+    assert len(solves) == len(solved) - 1 and not parts.exists()
+    for name, obj in first.items():
+        again = json.loads((root / name).read_text())
+        if name == "fit.json":
+            obj["calibration"].pop("files"), again["calibration"].pop("files")
+        assert again == obj, name
+    fitted, head = workflows.load_calibrated(root / "fit.json")
     # Too few frames for a residual head: the calibration says so instead of overfitting.
     assert head is None and "skipped" in json.loads((root / "fit_report" / "metrics.json").read_text())["residual_head"]
     obj = json.loads((root / "fit.json").read_text())

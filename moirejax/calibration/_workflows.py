@@ -11,10 +11,17 @@ report compares with.
 """
 
 import hashlib
+import importlib.metadata
+import io
+import json
 import math
+import shutil
+import sys
 import warnings
+import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -22,11 +29,15 @@ import numpy as np
 from .._conventions import WRENCH_AXES, WRENCH_SCALE
 from .._fileio import (
     ARGUMENT,
+    atomic_write_bytes,
+    atomic_write_text,
     check_output_file,
     check_output_folder,
     commit_staged,
     DataError,
     DataWarning,
+    fingerprint,
+    open_parts,
     read_json,
     sha256_file,
     staging_folder,
@@ -34,7 +45,7 @@ from .._fileio import (
 )
 from ..data import Dataset
 from ..inverse import Estimate, invert, Inverter, Status
-from ..physics import Device, device_from_json, load_device, save_device
+from ..physics import Device, device_from_json, device_to_json, load_device, save_device
 from ._calibration import fit_physical_parameters, load_recipe, Recipe
 from ._metrics import plot_parity, plot_residuals, wrench_metrics
 from ._residual_head import head_features, load_head, ResidualHead, save_head, train_residual_head
@@ -144,15 +155,94 @@ def load_calibrated(device_path: str | Path) -> tuple[Device, ResidualHead | Non
     return device, load_head(device_path.parent / head_name)
 
 
-def _apply_head(head: ResidualHead | None, result: Estimate) -> np.ndarray:
+class _Solutions(NamedTuple):
+    """What the calibration jobs keep of each frame's solve: the physical wrench, its
+    standard errors and status, and the contact the residual head reads."""
+
+    wrench: np.ndarray
+    sigma: np.ndarray
+    status: np.ndarray
+    x0: np.ndarray
+    y0: np.ndarray
+    radius: np.ndarray
+
+    @classmethod
+    def of(cls, estimate: Estimate) -> "_Solutions":
+        contact = estimate.contact
+        return cls(
+            *(np.asarray(a) for a in (estimate.wrench, estimate.sigma, estimate.status)),
+            *(np.asarray(a) for a in (contact.x0, contact.y0, contact.radius)),
+        )
+
+
+def _apply_head(head: ResidualHead | None, result: _Solutions) -> np.ndarray:
     wrench = np.array(result.wrench)
     if head is None:
         return wrench
     ok = np.all(np.isfinite(wrench), axis=1) & (result.status != Status.NO_CONTACT)
     if np.any(ok):
-        contact = result.contact
-        wrench[ok] = head.correct(wrench[ok], contact.x0[ok], contact.y0[ok], contact.radius[ok])
+        wrench[ok] = head.correct(wrench[ok], result.x0[ok], result.y0[ok], result.radius[ok])
     return wrench
+
+
+# Calibration frames solved per part kept in `OUT.parts/`: what an interruption can lose.
+_SOLVED_PER_PART = 16
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("moirejax")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _physical_fit(parts: Path, nominal, reference, frames, wrenches, recipe, progress) -> tuple[Device, dict, list]:
+    """The fitted device, its parameters' uncertainty and the fit's history: read from
+    `parts` when an earlier run of the same calibration got that far, else fitted and kept
+    there. The device always comes through its JSON, so a resumed run continues from the
+    very numbers an uninterrupted one uses."""
+    path = parts / "physical.json"
+    try:
+        kept = json.loads(path.read_text())
+    except (OSError, ValueError):
+        result = fit_physical_parameters(nominal, reference, frames, wrenches, recipe, progress=progress)
+        kept = {
+            "device": device_to_json(result.device),
+            "uncertainty": result.uncertainty,
+            "history": result.history,
+        }
+        atomic_write_text(path, json.dumps(_finite_or_null(kept)))
+    return device_from_json(kept["device"], source=str(path)), kept["uncertainty"], kept["history"]
+
+
+def _solve_calibration_frames(parts: Path, inverter: Inverter, frames, progress: bool) -> _Solutions:
+    """Every calibration frame solved cold, `_SOLVED_PER_PART` frames to a part kept in
+    `parts`: a rerun after an interruption solves only the parts that are missing."""
+    from tqdm.auto import tqdm
+
+    starts = range(0, len(frames), _SOLVED_PER_PART)
+    kept: dict[int, _Solutions] = {}
+    for start in starts:
+        try:
+            with np.load(parts / f"solved-{start:06d}.npz") as part:
+                solutions = _Solutions(*(part[name] for name in _Solutions._fields))
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            continue  # not solved yet, or a part that cannot be read: solved again
+        if len(solutions.wrench) == min(_SOLVED_PER_PART, len(frames) - start):
+            kept[start] = solutions
+    initial = sum(len(s.wrench) for s in kept.values())
+    bar = tqdm(total=len(frames), initial=initial, desc="invert calibration frames", unit="frame", disable=not progress)
+    with bar:
+        for start in starts:
+            if start in kept:
+                continue
+            stop = min(start + _SOLVED_PER_PART, len(frames))
+            kept[start] = _Solutions.of(invert(inverter, frames[start:stop]))
+            buffer = io.BytesIO()
+            np.savez(buffer, **kept[start]._asdict())
+            atomic_write_bytes(parts / f"solved-{start:06d}.npz", buffer.getvalue())
+            bar.update(stop - start)
+    return _Solutions(*(np.concatenate(column) for column in zip(*(kept[start] for start in starts))))
 
 
 def fit_tilt_matrix(x0: np.ndarray, y0: np.ndarray, moments: np.ndarray, device) -> tuple[np.ndarray, float]:
@@ -381,6 +471,13 @@ def calibrate(
     own frames (R² < 0) are written flagged: the reasons go in `calibration.flagged` of the
     device file (which then loads with a warning) and in the report's `verdict`.
 
+    The work is kept as it is done in `OUT.parts/` beside the device file: the fitted
+    physical parameters, then the calibration frames' cold solves, 16 frames to a part. A
+    calibration interrupted (Ctrl-C, a kill, a lost machine) and run again with the same
+    data, frames, nominal device and recipe starts where it stopped, and writes the same
+    numbers as a run that was never interrupted; a rerun with other inputs drops the parts
+    with a warning. The folder goes once the set is written.
+
     **Raises:** [`DataError`][] for unusable data, [`OutputError`][moirejax.OutputError]
     (before the fit) for outputs that cannot be written.
     """
@@ -404,35 +501,41 @@ def calibrate(
             f"(pass {ARGUMENT} to write one anyway, flagged)",
             argument="force",
         )
-    result = fit_physical_parameters(nominal, reference, frames, wrenches, recipe, progress=progress)
-    inverter = Inverter(result.device, reference=reference, match_reference=False)
+    parts = Path(f"{out}.parts")
+    plan = {
+        "data": str(Path(data).resolve()),
+        "frames": fingerprint(idx, wrenches, reference),
+        "nominal": fingerprint(nominal),
+        "recipe": recipe.to_json(),
+        "moirejax": _version(),
+    }
+    if open_parts(parts, plan, argument="out", restart_other=True) and progress:
+        print(f"resuming the calibration kept in {parts}", file=sys.stderr)
+    fitted, uncertainty, history = _physical_fit(parts, nominal, reference, frames, wrenches, recipe, progress)
+    inverter = Inverter(fitted, reference=reference, match_reference=False)
     # Cold starts, as the frames the head will correct are solved: started from their
     # reference wrench instead, the calibration frames were inverted 3x faster, but the head
     # then learned the error of a solver that knows the answer, and on an independent
     # renderer's held-out loads it corrected Fz and Ty less (R2 0.84 and 0.77 against 0.88
     # and 0.81).
-    physical = invert(inverter, frames, progress=progress, desc="invert calibration frames")
+    physical = _solve_calibration_frames(parts, inverter, frames, progress)
     ok = np.all(np.isfinite(physical.wrench), axis=1) & (physical.status != Status.NO_CONTACT)
-    features = head_features(
-        physical.wrench[ok], physical.contact.x0[ok], physical.contact.y0[ok], physical.contact.radius[ok]
-    )
+    features = head_features(physical.wrench[ok], physical.x0[ok], physical.y0[ok], physical.radius[ok])
     if ok.sum() >= MIN_HEAD_FRAMES:
         head, head_record = train_residual_head(features, (wrenches[ok] - physical.wrench[ok]) / WRENCH_SCALE)
     else:
         # A learned correction from a few dozen frames extrapolates badly to other loads.
         head, head_record = None, {"skipped": f"{int(ok.sum())} usable frames, fewer than {MIN_HEAD_FRAMES}"}
     corrected = _apply_head(head, physical)
-    tilt, tilt_r2 = fit_tilt_matrix(
-        physical.contact.x0[ok], physical.contact.y0[ok], wrenches[ok][:, 3:5], result.device
-    )
-    fitted_device = eqx_replace_tilt(result.device, tilt)
+    tilt, tilt_r2 = fit_tilt_matrix(physical.x0[ok], physical.y0[ok], wrenches[ok][:, 3:5], fitted)
+    fitted_device = eqx_replace_tilt(fitted, tilt)
     metrics_physics = wrench_metrics(wrenches, physical.wrench, physical.sigma)
     metrics = wrench_metrics(wrenches, corrected, physical.sigma)
     # Each frame is read once more for the baseline's features, and not at all without one.
     features = ridge_features(frames, reference) if baseline_sizes else np.zeros((len(idx), 0))
     baselines = cross_validated_ridge_r2(features, wrenches, baseline_sizes)
     report_dir = _report_dir(out)
-    parameters = _parameter_table(nominal, fitted_device, result.uncertainty, dataset.true_device)
+    parameters = _parameter_table(nominal, fitted_device, uncertainty, dataset.true_device)
     worse_than_mean = [
         axis
         for axis in WRENCH_AXES
@@ -473,7 +576,7 @@ def calibrate(
                 "tilt_matrix_r2": tilt_r2,
                 "ridge_baseline_r2_crossvalidated": baselines,
                 "verdict": verdict,
-                "history": result.history,
+                "history": history,
                 "recipe": recipe.to_json(),
             },
         )
@@ -482,11 +585,12 @@ def calibrate(
     calibration = {
         "dataset": str(data),
         "recipe": recipe.name,
-        "uncertainty": result.uncertainty,
+        "uncertainty": uncertainty,
         "metrics": {"r2": metrics["r2"], "mae": metrics["mae"]},
         **({"flagged": flagged} if flagged else {}),
     }
     _write_fit_set(out, fitted_device, calibration, head, write_report)
+    shutil.rmtree(parts, ignore_errors=True)
     return {
         "metrics": metrics,
         "physics_only": metrics_physics,
@@ -553,7 +657,7 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
     reference = dataset_reference(dataset)
     idx = _select(dataset, None)
     inverter = Inverter(device, reference=reference)
-    result = invert(inverter, dataset.frames(idx), progress=progress, desc="evaluate")
+    result = _Solutions.of(invert(inverter, dataset.frames(idx), progress=progress, desc="evaluate"))
     wrench = _apply_head(head, result)
     truth = dataset.wrenches[idx]
     metrics = wrench_metrics(truth, wrench, result.sigma)
@@ -609,7 +713,7 @@ def transfer(
         # unit's own (its fabrication), so check it on the new unit's frames, which it
         # never saw. On a pair of simulated units it cost 0.01 R² on the shear axes.
         inverter = Inverter(result.device, reference=reference, match_reference=False)
-        physical = invert(inverter, frames, progress=progress, desc="check residual head")
+        physical = _Solutions.of(invert(inverter, frames, progress=progress, desc="check residual head"))
         ok = np.all(np.isfinite(physical.wrench), axis=1) & (physical.status != Status.NO_CONTACT)
         without = float(np.mean(((physical.wrench[ok] - wrenches[ok]) / WRENCH_SCALE) ** 2))
         with_head = float(np.mean(((_apply_head(head, physical)[ok] - wrenches[ok]) / WRENCH_SCALE) ** 2))

@@ -1029,7 +1029,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("calibrate", help="fit a unit's physical parameters and residual head to a dataset")
     p.add_argument("--device", metavar="NOMINAL", help="nominal device JSON (default: the dataset's)")
     p.add_argument("--data", required=True, metavar="DATASET")
-    p.add_argument("--out", required=True, metavar="FIT.json", help="fitted device; head and report go beside it")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="FIT.json",
+        help="fitted device; head and report go beside it, and the work done so far in FIT.json.parts/ "
+        "(a rerun after an interruption resumes from it)",
+    )
     p.add_argument("--max-frames", type=_positive_int, default=500)
     p.add_argument(
         "--recipe",

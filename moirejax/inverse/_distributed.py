@@ -18,7 +18,6 @@ as it finishes. The frames are read by the workers from the path they are given,
 several machines the recordings must be on storage they all mount.
 """
 
-import hashlib
 import json
 import os
 import shutil
@@ -26,10 +25,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-import jax
-import numpy as np
-
-from .._fileio import atomic_write_text, check_output_file, DataError, OutputError
+from .._fileio import atomic_write_text, check_output_file, fingerprint, open_parts
 from ._inversion import Inverter
 from ._invert_io import (
     _check_count,
@@ -45,8 +41,6 @@ from ._invert_io import (
 # The inverters of this worker process, by run: built from the run's first segment here.
 _WORKER_INVERTERS: dict[str, Any] = {}
 
-PLAN_NAME = "plan.json"
-
 
 def _run_segment(run: str, shipped, source: str, start: int, stop: int, batch: int) -> dict:
     """On a worker: invert frames `start..stop-1` of `source`; the rows as CSV text and the
@@ -60,19 +54,6 @@ def _run_segment(run: str, shipped, source: str, start: int, stop: int, batch: i
     for row in rows:
         counts[row[-2]] = counts.get(row[-2], 0) + 1
     return {"csv": _csv_text(rows), "counts": counts, "frames": len(rows)}
-
-
-def _fingerprint(*trees) -> str:
-    """A hash of the arrays and static fields of pytrees: what makes two runs' segments interchangeable."""
-    digest = hashlib.sha256()
-    for tree in trees:
-        leaves, structure = jax.tree_util.tree_flatten(tree)
-        digest.update(str(structure).encode())
-        for leaf in leaves:
-            array = np.asarray(leaf)
-            digest.update(f"{array.dtype}{array.shape}".encode())
-            digest.update(np.ascontiguousarray(array).tobytes())
-    return digest.hexdigest()
 
 
 def _segment_name(start: int) -> str:
@@ -133,7 +114,7 @@ def invert_distributed(
         "frames": n_frames,
         "segment": segment,
         "batch": batch,
-        "inverter": _fingerprint(inverter, head),
+        "inverter": fingerprint(inverter, head),
     }
     done = _resume(parts, plan)
     todo = [(start, stop) for start, stop in segments(n_frames, segment) if start not in done]
@@ -177,25 +158,8 @@ def invert_distributed(
 
 
 def _resume(parts: Path, plan: dict) -> dict[int, dict]:
-    """The segments a previous run of the same plan finished, from `parts`; the folder is
-    made (with the plan) when there is none."""
-    plan_file = parts / PLAN_NAME
-    if not parts.exists():
-        try:
-            parts.mkdir(parents=True)
-        except OSError as e:
-            raise OutputError(f"{parts}: cannot be made ({e.strerror or e})", argument="out_csv") from e
-        atomic_write_text(plan_file, json.dumps(plan, indent=1))
-        return {}
-    try:
-        previous = json.loads(plan_file.read_text())
-    except (OSError, ValueError):
-        previous = None
-    if previous != plan:
-        raise DataError(
-            f"{parts}: segments of a different run (another source, device, reference, segment or batch); "
-            "remove the folder to start afresh"
-        )
+    """The segments a previous run of the same plan finished, from `parts`."""
+    open_parts(parts, plan, argument="out_csv")
     done: dict[int, dict] = {}
     for path in parts.glob("segment-*.json"):
         try:
