@@ -57,6 +57,8 @@ def main(argv=None):
     simulate_s = time.perf_counter() - t0
 
     before = evaluate(root / "mid.json", root / "a_test", root / "a_before")
+    # A kept folder may hold the parts of an interrupted run, which calibrate would resume.
+    shutil.rmtree(root / "fit_a.json.parts", ignore_errors=True)
     t0 = time.perf_counter()
     summary = calibrate(root / "mid.json", root / "a_cal", root / "fit_a.json", baseline_sizes=())
     calibrate_s = time.perf_counter() - t0

@@ -316,7 +316,12 @@ def open_parts(parts: Path, plan: dict, *, argument: str, restart_other: bool = 
                 f"{parts}: parts of a different run (other inputs or settings); remove the folder to start afresh"
             )
         warnings.warn(f"{parts}: parts of a different run dropped; this run starts afresh", DataWarning, stacklevel=3)
-        shutil.rmtree(parts)
+        try:
+            shutil.rmtree(parts)
+        except OSError as e:
+            raise OutputError(
+                f"{parts}: parts of a different run cannot be removed ({e.strerror or e})", argument=argument
+            ) from e
     try:
         parts.mkdir(parents=True)
     except OSError as e:

@@ -3,10 +3,11 @@
 import os
 import stat
 
+import numpy as np
 import pytest
 
 from moirejax import _fileio
-from moirejax._fileio import atomic_write_bytes, atomic_write_text
+from moirejax._fileio import atomic_write_bytes, atomic_write_text, fingerprint, open_parts
 
 
 def _mode(path) -> int:
@@ -34,3 +35,24 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path, monke
         atomic_write_bytes(path, b"new")
     assert path.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["fit.json"]
+
+
+def test_parts_of_a_long_job_belong_to_its_plan(tmp_path):
+    import json
+
+    parts = tmp_path / "fit.json.parts"
+    plan = {"data": "cal", "frames": fingerprint(np.arange(5))}
+    assert not open_parts(parts, plan, argument="out")
+    (parts / "solved-000000.npz").write_bytes(b"part")
+    # The same plan finds its parts; the plan's file is what tells them apart.
+    assert open_parts(parts, json.loads(json.dumps(plan)), argument="out")
+    assert (parts / "solved-000000.npz").exists()
+    other = {**plan, "frames": fingerprint(np.arange(6))}
+    assert other["frames"] != plan["frames"] and fingerprint(np.arange(5)) == plan["frames"]
+    with pytest.raises(_fileio.DataError, match="different run.*remove the folder"):
+        open_parts(parts, other, argument="out")
+    assert (parts / "solved-000000.npz").exists()
+    with pytest.warns(_fileio.DataWarning, match="different run dropped"):
+        assert not open_parts(parts, other, argument="out", restart_other=True)
+    assert [p.name for p in parts.iterdir()] == [_fileio.PLAN_NAME]
+    assert json.loads((parts / _fileio.PLAN_NAME).read_text()) == other

@@ -23,6 +23,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -44,7 +45,7 @@ from .._fileio import (
     write_json,
 )
 from ..data import Dataset
-from ..inverse import Estimate, invert, Inverter, Status
+from ..inverse import default_carriers, default_model_shape, Estimate, invert, Inverter, Status
 from ..physics import Device, device_from_json, device_to_json, load_device, save_device
 from ._calibration import fit_physical_parameters, load_recipe, Recipe
 from ._metrics import plot_parity, plot_residuals, wrench_metrics
@@ -205,13 +206,18 @@ def _physical_fit(parts: Path, nominal, reference, frames, wrenches, recipe, pro
     try:
         kept = json.loads(path.read_text())
     except (OSError, ValueError):
+        # Frames solved with another fit do not belong with this one.
+        for part in parts.glob("solved-*.npz"):
+            part.unlink()
         result = fit_physical_parameters(nominal, reference, frames, wrenches, recipe, progress=progress)
         kept = {
             "device": device_to_json(result.device),
             "uncertainty": result.uncertainty,
             "history": result.history,
         }
-        atomic_write_text(path, json.dumps(_finite_or_null(kept)))
+        # Python's JSON keeps a NaN (a degenerate forced fit), so both paths read the same.
+        atomic_write_text(path, json.dumps(kept))
+        kept = json.loads(path.read_text())
     return device_from_json(kept["device"], source=str(path)), kept["uncertainty"], kept["history"]
 
 
@@ -507,7 +513,11 @@ def calibrate(
         "frames": fingerprint(idx, wrenches, reference),
         "nominal": fingerprint(nominal),
         "recipe": recipe.to_json(),
-        "moirejax": _version(),
+        # What the environment changes in the solves (`MOIREJAX_MODEL_GRID`,
+        # `MOIREJAX_CARRIERS`), and the code and backend that run them.
+        "model_shape": list(default_model_shape(nominal)),
+        "carriers": default_carriers(),
+        "versions": [_version(), jax.__version__, jax.default_backend()],
     }
     if open_parts(parts, plan, argument="out", restart_other=True) and progress:
         print(f"resuming the calibration kept in {parts}", file=sys.stderr)
