@@ -48,10 +48,9 @@ others). `--no-frames` skips the in-process frame cases.
 
 Time per frame, the compile time of the first frame and the peak memory are printed too.
 The inversion grid is the default ([`mj.model_grid_for`]); set `MOIREJAX_MODEL_GRID`
-(e.g. `64`) to trade accuracy for a faster run: the JSON records the grid used. A cold
-solve of a frame the model cannot explain runs every fallback start: `--n 2` (24 frames)
-took 12 minutes on two CPU cores shared with a test run (median 24 s a frame, 40 s compile),
-so start small.
+(e.g. `64`) to trade accuracy for a faster run: the JSON records the grid used. Frames the
+model cannot explain run every fallback start of a cold solve and cost far more than
+valid ones: start with a small `--n`.
 """
 
 import argparse
