@@ -190,13 +190,6 @@ def _apply_head(head: ResidualHead | None, result: _Solutions) -> np.ndarray:
 _SOLVED_PER_PART = 16
 
 
-def _version() -> str:
-    try:
-        return importlib.metadata.version("moirejax")
-    except importlib.metadata.PackageNotFoundError:
-        return "unknown"
-
-
 def _physical_fit(parts: Path, nominal, reference, frames, wrenches, recipe, progress) -> tuple[Device, dict, list]:
     """The fitted device, its parameters' uncertainty and the fit's history: read from
     `parts` when an earlier run of the same calibration got that far, else fitted and kept
@@ -517,7 +510,7 @@ def calibrate(
         # `MOIREJAX_CARRIERS`), and the code and backend that run them.
         "model_shape": list(default_model_shape(nominal)),
         "carriers": default_carriers(),
-        "versions": [_version(), jax.__version__, jax.default_backend()],
+        "versions": [importlib.metadata.version("moirejax"), jax.__version__, jax.default_backend()],
     }
     if open_parts(parts, plan, argument="out", restart_other=True) and progress:
         print(f"resuming the calibration kept in {parts}", file=sys.stderr)
