@@ -204,13 +204,10 @@ class Inverter(eqx.Module):
       across a 2.5 mm contact radius: 96 × 96 on the paper's Mid design) unless the
       environment sets `MOIREJAX_MODEL_GRID`.
     - `band_fraction`: band radius over |K| of the demodulator.
-    - `max_steps`, `rtol`, `atol`: Levenberg–Marquardt settings. A solve stops when a step
-      changes no unknown by more than `atol + rtol·|unknown|` (the wrench in units of its
-      range, the contact centre in mm) and no residual by more than
-      `atol + rtol·|residual|`. At 1e-4 a step is a tenth of a millinewton of normal force,
-      far inside its noise; in single precision the cost cannot tell smaller steps apart,
-      and at 1e-5, on frames of a unit the model does not describe exactly, a quarter of
-      the solver's steps went on them.
+    - `max_steps`, `tolerance`: Levenberg–Marquardt settings. A solve stops when its next
+      Gauss–Newton step would move no unknown by more than `tolerance` of that unknown's
+      standard error (closer than that the data cannot tell two solutions apart), or after
+      `max_steps` steps.
     - `contact_threshold`: how many times its noise level the fringe phase must move, in a
       window somewhere on the frame, for the frame to count as in contact
       ([`Inverter.phase_change`][]).
@@ -243,8 +240,7 @@ class Inverter(eqx.Module):
     fitted_flatness: Bool[Array, ""]
     model_shape: tuple[int, int] = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
-    rtol: float = eqx.field(static=True)
-    atol: float = eqx.field(static=True)
+    tolerance: float = eqx.field(static=True)
     contact_threshold: float = eqx.field(static=True)
     brightness: bool = eqx.field(static=True)
     chord_steps: int = eqx.field(static=True)
@@ -259,8 +255,7 @@ class Inverter(eqx.Module):
         model_shape: tuple[int, int] | None = None,
         band_fraction: float = BAND_FRACTION,
         max_steps: int = 40,
-        rtol: float = 1e-4,
-        atol: float = 1e-4,
+        tolerance: float = 0.05,
         contact_threshold: float = 10.0,
         brightness: bool = False,
         match_reference: bool = True,
@@ -287,8 +282,7 @@ class Inverter(eqx.Module):
                 stacklevel=2,
             )
         self.max_steps = max_steps
-        self.rtol = rtol
-        self.atol = atol
+        self.tolerance = tolerance
         self.contact_threshold = contact_threshold
         self.brightness = bool(brightness)
         self.fitted_light = jnp.asarray(False)

@@ -25,12 +25,12 @@ from typing import TYPE_CHECKING
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, Float
 
 from .._conventions import NMM_PER_NM
 from ..physics import Contact
+from ._solvers import Marquardt
 from ._state import LoadState, N_PRIORS, N_UNKNOWNS
 
 
@@ -241,7 +241,7 @@ def solve_pair(problem: "Inverter", y1, r1, args):
     starts = jnp.stack(
         [_matched_press(pair, first, observed, x, y, away, r1[:n_data]), _split(first, misfit_x, misfit_y)]
     )
-    solver = optx.LevenbergMarquardt(rtol=problem.rtol, atol=problem.atol, linear_solver=lx.QR())
+    solver = Marquardt(noise=args[1], tolerance=problem.tolerance)
     # The starts are solved with both patches rounded, and the flatness is freed only from
     # the best of them, as in a cold solve of one patch (`solve_cold`): freed from the starts,
     # a twisted line contact ended at `max_steps` with twice the misfit and Fz 0.45 of its
