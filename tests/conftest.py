@@ -23,6 +23,14 @@ _OWN_CACHE = None
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _OWN_CACHE = os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="moirejax-test-jax-cache-")
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+# Every program, not only those that take a second to compile (JAX's default): a workflow
+# compiles a few hundred small ones (the eager arithmetic of building an inverter, a
+# calibration's set-up), which each test and process building the same objects would
+# otherwise compile again.
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+jax.config.update(
+    "jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])
+)
 # The test workers read and write the same cache: a test module's programs are dropped at
 # its end (`_release_compiled_programs`), and the next module that compiles the same
 # inversion loads it instead of compiling it again. Workers were once kept out of it after

@@ -240,17 +240,27 @@ def _number(text: str) -> float | None:
 @pytest.mark.parametrize("setting", ["default", "own", "off"])
 def test_commands_keep_compiled_programs_in_a_cache_folder(tmp_path, setting):
     # A fresh process: the choice must be made before JAX compiles anything.
-    env = {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", "MOIREJAX_COMPILATION_CACHE")}
+    cache_settings = (
+        "JAX_COMPILATION_CACHE_DIR",
+        "MOIREJAX_COMPILATION_CACHE",
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+    )
+    env = {k: v for k, v in os.environ.items() if k not in cache_settings}
     env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
     if setting == "own":
         env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "own")
     if setting == "off":
         env["MOIREJAX_COMPILATION_CACHE"] = "0"
-    code = "import jax; from moirejax.cli._main import use_compilation_cache as u; print(u(), jax.config.jax_compilation_cache_dir)"
+    code = (
+        "import jax; from moirejax.cli._main import use_compilation_cache as u; "
+        "print(u(), jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs)"
+    )
     result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     expected = {"default": str(tmp_path / "xdg" / "moirejax" / "jax"), "own": str(tmp_path / "own"), "off": "None"}
-    assert result.stdout.split() == [expected[setting]] * 2
+    # The small programs a command compiles are kept too, unless the cache is off.
+    threshold = "1.0" if setting == "off" else "0.0"
+    assert result.stdout.split() == [expected[setting]] * 2 + [threshold]
 
 
 def test_readme_cli_reference_is_current():

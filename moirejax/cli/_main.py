@@ -1204,8 +1204,12 @@ def use_compilation_cache() -> str | None:
     """Keep compiled programs on disk between runs of the command; returns the folder used.
 
     Compiling the inversion takes 10-20 s on a laptop CPU, paid again by every `invert`,
-    `live` or `calibrate` that meets the same design and frame size. JAX's persistent cache
-    turns that into a second. The folder is the user's own `JAX_COMPILATION_CACHE_DIR` if
+    `live` or `calibrate` that meets the same design and frame size, and a command also
+    compiles a few hundred small programs (the arithmetic of setting up an inverter or a
+    calibration), each below JAX's default threshold of a second for caching but together
+    several seconds. JAX's persistent cache, kept here for every program whatever its
+    compile time unless `JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS` says otherwise, saves
+    both. The folder is the user's own `JAX_COMPILATION_CACHE_DIR` if
     set, else `$XDG_CACHE_HOME/moirejax/jax` (`~/.cache/moirejax/jax`);
     `MOIREJAX_COMPILATION_CACHE=0` turns it off. Call it before anything is compiled.
     """
@@ -1213,6 +1217,8 @@ def use_compilation_cache() -> str | None:
 
     if os.environ.get("MOIREJAX_COMPILATION_CACHE", "1") == "0":
         return None
+    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     if jax.config.jax_compilation_cache_dir:
         return jax.config.jax_compilation_cache_dir
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
