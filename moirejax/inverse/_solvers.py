@@ -33,23 +33,12 @@ _SEARCH_TOLERANCE = 0.5
 _HEAVY_SHEAR = 0.75
 
 
-def gauss_newton_step(jtj, gradient, noise):
+def _gauss_newton(jtj, gradient, noise):
     """The Gauss–Newton step of a whitened least-squares problem (normal matrix `jtj`,
-    gradient `gradient`, residuals whose noise has standard deviation `noise`), and its
-    size in standard errors ([`size_in_standard_errors`][])."""
+    gradient `gradient`, residuals whose noise has standard deviation `noise`), and the
+    standard error of each unknown there."""
     inverse = _covariance_shape(jtj)
-    dy = -inverse @ gradient
-    return dy, _size(dy, jtj, inverse, noise)
-
-
-def size_in_standard_errors(dy, jtj, noise):
-    """The largest move of an unknown in a step `dy`, in units of that unknown's standard
-    error at the noise level `noise` (normal matrix `jtj`).
-
-    Only the unknowns the data or the priors inform count: on the fringe phase alone the
-    exposure is not seen at all, has no standard error, and takes no step.
-    """
-    return _size(dy, jtj, _covariance_shape(jtj), noise)
+    return -inverse @ gradient, _standard_errors(jtj, inverse, noise)
 
 
 def _covariance_shape(jtj):
@@ -60,16 +49,26 @@ def _covariance_shape(jtj):
     return scale[:, None] * jnp.linalg.pinv(jtj * scale[:, None] * scale[None, :], hermitian=True) * scale[None, :]
 
 
-def _size(dy, jtj, inverse, noise):
+def _standard_errors(jtj, inverse, noise):
+    """Each unknown's standard error at the noise level `noise` (normal matrix `jtj`, its
+    pseudo-inverse `inverse`); infinite for an unknown neither the data nor the priors
+    inform: on the fringe phase alone the exposure is not seen at all, and takes no step."""
     information = jnp.diagonal(jtj)
     informed = information > 1e-9 * jnp.max(information)
     sigma = noise * jnp.sqrt(jnp.clip(jnp.diagonal(inverse), 1e-30, None))
-    return jnp.max(jnp.where(informed, jnp.abs(dy) / sigma, 0.0))
+    return jnp.where(informed, sigma, jnp.inf)
+
+
+def _largest_move(dy, sigma):
+    """The largest move of an informed unknown in a step `dy`, in its standard errors."""
+    return jnp.max(jnp.where(jnp.isinf(sigma), 0.0, jnp.abs(dy) / sigma))
 
 
 class _MarquardtState(eqx.Module):
     residual: Array
     jacobian: Array
+    # The unknowns' standard errors at the current point.
+    sigma: Array
     damping: Array
     converged: Bool[Array, ""]
 
@@ -109,8 +108,9 @@ class Marquardt(optx.AbstractLeastSquaresSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         residual, jacobian = _residual_and_jacobian(fn, y, args)
-        _, size = gauss_newton_step(jacobian.T @ jacobian, jacobian.T @ residual, self.noise)
-        return _MarquardtState(residual, jacobian, jnp.asarray(1.0, residual.dtype), size < self.tolerance)
+        dy, sigma = _gauss_newton(jacobian.T @ jacobian, jacobian.T @ residual, self.noise)
+        converged = _largest_move(dy, sigma) < self.tolerance
+        return _MarquardtState(residual, jacobian, sigma, jnp.asarray(1.0, residual.dtype), converged)
 
     def step(self, fn, y, args, options, state, tags):
         jtj = state.jacobian.T @ state.jacobian
@@ -131,9 +131,11 @@ class Marquardt(optx.AbstractLeastSquaresSolver):
         )
         y = jnp.where(accept, y_new, y)
         damping = state.damping * jnp.where(accept, jnp.where(gain > 0.99, 1 / 3.5, 1.0), 4.0)
-        _, size = gauss_newton_step(jacobian.T @ jacobian, jacobian.T @ residual, self.noise)
-        stalled = ~accept & (size_in_standard_errors(dy, jtj, self.noise) < self.tolerance)
-        return y, _MarquardtState(residual, jacobian, damping, (size < self.tolerance) | stalled), aux
+        # A rejected step is measured in the standard errors of the point it left.
+        stalled = ~accept & (_largest_move(dy, state.sigma) < self.tolerance)
+        gauss_newton, sigma = _gauss_newton(jacobian.T @ jacobian, jacobian.T @ residual, self.noise)
+        converged = (_largest_move(gauss_newton, sigma) < self.tolerance) | stalled
+        return y, _MarquardtState(residual, jacobian, sigma, damping, converged), aux
 
     def terminate(self, fn, y, args, options, state, tags):
         return state.converged, optx.RESULTS.successful
@@ -173,12 +175,12 @@ def chord(problem: "Inverter", y, r, jacobian, args):
         gradient = jacobian.T @ r[:-N_PRIORS] + prior_jac.T @ r[-N_PRIORS:]
         # Unscaled, so that single precision drops the directions the data barely see
         # (the shear along line gratings, the exposure on the fringe phase) instead of
-        # stepping along them: taken at unit diagonal as `gauss_newton_step` does, the
+        # stepping along them: taken at unit diagonal as `_gauss_newton` does, the
         # chord steps of a simulated press-twist-release stream failed more often and the
         # stream sustained 1.0 frames/s instead of 2.8.
         inverse = jnp.linalg.pinv(jtj, hermitian=True)
         dy = -inverse @ gradient
-        return dy, _size(dy, jtj, inverse, noise)
+        return dy, _largest_move(dy, _standard_errors(jtj, inverse, noise))
 
     cost0 = jnp.sum(r**2)
     dy, size = step(y, r, jacobian)
