@@ -5,7 +5,10 @@
 them, for use inside a user's own `jit`, `vmap` or `grad`.
 """
 
+import collections
+import os
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -26,6 +29,7 @@ def invert(
     init: LoadState | None = None,
     sequence: bool = False,
     batch: int = 16,
+    threads: int | None = None,
     progress: bool = False,
     desc: str = "invert",
 ) -> Estimate:
@@ -46,6 +50,10 @@ def invert(
       solving each cold, and the same estimates to about one standard error. Without it,
       every frame is solved on its own ([`Inverter.solve`][]): the choice for frames of
       unrelated loads, such as a calibration set.
+    - `threads`: frames solved on their own are solved this many at a time, on threads
+      sharing one compiled program (default: the machine's cores, at most 8). A solve is a long chain of small operations that keeps about one
+      core busy, so a second one in flight uses the second core; the estimates are the
+      same whatever the number.
     - `progress`, `desc`: a progress bar with that label.
 
     A frame that cannot be inverted gets its status (bad frame, non-finite, no contact) and
@@ -54,10 +62,14 @@ def invert(
     hold device memory), device arrays for one.
 
     **Raises:** `ValueError` for no frames, a frame that is not 2-D or of the device's
-    size, `init` together with `sequence`, or `batch < 1`.
+    size, `init` together with `sequence`, or `batch < 1` or `threads < 1`.
     """
     if isinstance(batch, bool) or not isinstance(batch, int | np.integer) or batch < 1:
         raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
+    if threads is None:
+        threads = max(1, min(os.cpu_count() or 1, _SOLVE_THREADS))
+    if isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 1:
+        raise ValueError(f"threads must be a whole number >= 1, got {threads!r}")
     if sequence and init is not None:
         raise ValueError("init starts frames solved on their own; a sequence continues from its own frames")
     if isinstance(frames, np.ndarray | jax.Array) and frames.ndim == 2:
@@ -68,19 +80,55 @@ def invert(
     from tqdm.auto import tqdm
 
     total = len(frames) if hasattr(frames, "__len__") else None  # pyright: ignore[reportArgumentType]
-    bar = tqdm(frames, total=total, desc=desc, unit="frame", disable=not progress)
     if sequence:
+        bar = tqdm(frames, total=total, desc=desc, unit="frame", disable=not progress)
         estimates = [jax.device_get(e) for e in _tracked(inverter, bar, batch)]
     else:
         cold = _cold_start(inverter)
-        estimates = []
-        for i, frame in enumerate(bar):
-            start = cold if init is None else jax.tree_util.tree_map(lambda x, i=i: x[i], init)
+
+        def solve(i, frame):
+            start = cold if init is None else jax.tree_util.tree_map(lambda x: x[i], init)
             frame = jnp.asarray(unit_frame(frame))
-            estimates.append(jax.device_get(with_second_contact(inverter, frame, _solve(inverter, frame, start))))
+            return jax.device_get(with_second_contact(inverter, frame, _solve(inverter, frame, start)))
+
+        estimates = []
+        with tqdm(total=total, desc=desc, unit="frame", disable=not progress) as bar:
+            for estimate in _in_order(solve, enumerate(frames), threads):
+                estimates.append(estimate)
+                bar.update()
     if not estimates:
         raise ValueError("no frames to invert")
     return jax.tree_util.tree_map(lambda *x: np.stack(x), *estimates)
+
+
+# The most frames `invert` solves at once on their own, whatever the number of cores: each
+# solve in flight holds its own intermediates.
+_SOLVE_THREADS = 8
+
+
+def _in_order(solve: Callable, items: Iterable[tuple], threads: int) -> Iterator:
+    """`solve(*item)` for every item, in order, with up to `threads` of them running at once
+    on threads; the first alone, so that it compiles what the others run. Items are
+    taken a few at a time (a generator reading frames is not read ahead of the solves)."""
+    items = iter(items)
+    first = next(items, None)
+    if first is None:
+        return
+    yield solve(*first)
+    if threads == 1:
+        yield from (solve(*item) for item in items)
+        return
+    pool = ThreadPoolExecutor(threads)
+    pending: collections.deque = collections.deque()
+    try:
+        for item in items:
+            pending.append(pool.submit(solve, *item))
+            if len(pending) >= 2 * threads:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def frame_tracker(inverter: Inverter) -> "FrameTracker":
