@@ -342,6 +342,20 @@ def test_batch_matches_single(mid, inverter):
     np.testing.assert_allclose(np.asarray(batch.wrench[1]), np.asarray(single.wrench), rtol=1e-3, atol=1e-4)
 
 
+def test_frames_solved_on_threads_keep_the_callers_precision():
+    # A `jax.enable_x64` context holds for its own thread only; the solves `invert` hands to
+    # other threads run under it too (the workflows run in single precision inside one).
+    from moirejax.inverse._invert import _in_order
+
+    def dtype_of(i, x):
+        return jnp.asarray(x).dtype, jnp.zeros(()).dtype
+
+    with jax.enable_x64(False):
+        seen = list(_in_order(dtype_of, enumerate([1.0] * 6), threads=2))
+    assert seen == [(jnp.dtype("float32"), jnp.dtype("float32"))] * 6
+    assert list(_in_order(dtype_of, enumerate([1.0] * 3), threads=2)) == [(jnp.dtype("float64"),) * 2] * 3
+
+
 def _noisy_stream(mid, n, seed=0):
     """A press and twist at camera rate, with 1% pixel noise."""
     rng = np.random.default_rng(seed)

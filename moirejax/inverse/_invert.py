@@ -118,6 +118,7 @@ def _in_order(solve: Callable, items: Iterable[tuple], threads: int) -> Iterator
     if threads == 1:
         yield from (solve(*item) for item in items)
         return
+    solve = _under_callers_settings(solve)
     pool = ThreadPoolExecutor(threads)
     pending: collections.deque = collections.deque()
     try:
@@ -129,6 +130,22 @@ def _in_order(solve: Callable, items: Iterable[tuple], threads: int) -> Iterator
             yield pending.popleft().result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _under_callers_settings(fn: Callable) -> Callable:
+    """`fn` run under the calling thread's JAX settings that a context sets for its own
+    thread only (`jax.enable_x64`, `jax.default_device`, `jax.numpy_dtype_promotion`): a
+    worker thread would otherwise solve in the process-wide precision, on the default
+    device, and compile a program of its own."""
+    x64 = jax.config.jax_enable_x64
+    device = jax.config.jax_default_device
+    promotion = jax.config.jax_numpy_dtype_promotion
+
+    def run(*args):
+        with jax.enable_x64(x64), jax.default_device(device), jax.numpy_dtype_promotion(promotion):
+            return fn(*args)
+
+    return run
 
 
 def frame_tracker(inverter: Inverter) -> "FrameTracker":
