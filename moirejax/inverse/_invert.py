@@ -51,9 +51,9 @@ def invert(
       every frame is solved on its own ([`Inverter.solve`][]): the choice for frames of
       unrelated loads, such as a calibration set.
     - `threads`: frames solved on their own are solved this many at a time, on threads
-      sharing one compiled program (default: the machine's cores, at most 8). A solve is a long chain of small operations that keeps about one
-      core busy, so a second one in flight uses the second core; the estimates are the
-      same whatever the number.
+      sharing one compiled program (default: the machine's cores, at most 8). A solve is a
+      long chain of small operations that keeps about one core busy, so a second one in
+      flight uses the second core; the estimates are the same whatever the number.
     - `progress`, `desc`: a progress bar with that label.
 
     A frame that cannot be inverted gets its status (bad frame, non-finite, no contact) and
