@@ -58,9 +58,10 @@ def main():
     # The drawn loads' limits (contacts within 4 mm of the centre), at least the paper's ranges.
     limits = np.maximum(SCALE, [shear, shear, args.max_force, 4e-3 * args.max_force, 4e-3 * args.max_force, twist])
     for family in args.families.split(","):
-        truth, estimate, sigma, status, seconds = [], [], [], [], []
+        truth, estimate, sigma, status, seconds, angle_errors = [], [], [], [], [], []
         for i in range(args.frames):
-            state = mj.indenter_deformation(device, mj.random_indenters(rng, family, args.max_force))
+            indenters = mj.random_indenters(rng, family, args.max_force)
+            state = mj.indenter_deformation(device, indenters)
             frame = render(jax.random.PRNGKey(i), state)
             start = time.perf_counter()
             result = mj.invert(inverter, jnp.asarray(frame))
@@ -70,6 +71,10 @@ def main():
             estimate.append(np.nan_to_num(np.asarray(result.wrench)))
             sigma.append(np.asarray(result.sigma))
             status.append(mj.Status(int(result.status)).name.lower())
+            if family == "line" and int(result.contacts) == 1:
+                # How far the patch's long axis is from the edge's direction (lines have no sense).
+                off = float(result.contact.long_axis_angle) - float(indenters[0].angle)
+                angle_errors.append(abs((off + np.pi / 2) % np.pi - np.pi / 2))
         truth, estimate, sigma = np.array(truth), np.array(estimate), np.array(sigma)
         r2 = 1 - ((estimate - truth) ** 2).sum(0) / ((truth - truth.mean(0)) ** 2).sum(0)
         rmse = np.sqrt(((estimate - truth) ** 2).mean(0)) / SCALE
@@ -90,6 +95,10 @@ def main():
             "unflagged_beyond_3_sigma": int(np.sum(np.any(np.abs(estimate - truth) > 3 * sigma, axis=1) & ~flagged)),
             "median_s": float(np.median(seconds)),
         }
+        if angle_errors:
+            # Lines read with one patch: its long axis against the edge's direction.
+            report["families"][family]["one_patch_frames"] = len(angle_errors)
+            report["families"][family]["median_axis_error_deg"] = round(float(np.degrees(np.median(angle_errors))), 1)
         if not args.json:
             print(family, json.dumps(report["families"][family]), flush=True)
     if args.json:

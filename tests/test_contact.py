@@ -3,6 +3,7 @@ import jax.numpy as jnp
 import jaxtyping
 import numpy as np
 import pytest
+import scipy.linalg
 
 import moirejax as mj
 from moirejax.physics import layer_response
@@ -91,19 +92,29 @@ def _hard_edge_fields(wrench, contact, X, Y):
     fx, fy, fz = wrench[:3]
     tx, ty, tz = np.asarray(wrench[3:]) * 1000.0
     r, x0, y0, f = float(contact.radius), float(contact.x0), float(contact.y0), float(contact.flatness)
+    # An elongated patch is the round one seen through the stretch S = expm(A): its
+    # profile at d is the round one's at S^-1 d, and its second moments are m2 S^2.
+    a, b = float(contact.stretch_x), float(contact.stretch_xy)
+    stretch = scipy.linalg.expm(np.array([[a, b], [b, -a]]))
+    inverse = np.linalg.inv(stretch)
     dX, dY = X - x0, Y - y0
-    gap = np.clip(1 - (dX**2 + dY**2) / r**2, 0, None)
+    u, v = inverse[0, 0] * dX + inverse[0, 1] * dY, inverse[1, 0] * dX + inverse[1, 1] * dY
+    gap = np.clip(1 - (u**2 + v**2) / r**2, 0, None)
     punch = np.where(gap > 0, 1 / np.sqrt(np.where(gap > 0, gap, 1.0)), 0.0)
     H = (1 - f) * np.sqrt(gap) / (2 * np.pi * r**2 / 3) + f * punch / (2 * np.pi * r**2)
     m0, m2 = 1.0, (1 - f) * r**2 / 5 + f * r**2 / 3
-    p = H * (fz / m0 - (ty + x0 * fz) / m2 * dX + (tx - y0 * fz) / m2 * dY)
-    twist = (tz - x0 * fy + y0 * fx) / (2 * m2)
+    moments = m2 * stretch @ stretch
+    cx, cy = np.linalg.solve(moments, [-(ty + x0 * fz), tx - y0 * fz])
+    p = H * (fz / m0 + cx * dX + cy * dY)
+    twist = (tz - x0 * fy + y0 * fx) / np.trace(moments)
     return np.stack([H * (fx / m0 - twist * dY), H * (fy / m0 + twist * dX), p])
 
 
 SPECTRUM_CASES = [
     ([0.1, -0.2, 0.8, 0.004, -0.006, 0.007], Contact(2.3, -1.7, 3.5)),
     ([-0.2, 0.15, 1.2, -0.012, 0.011, -0.008], Contact(-6.1, 4.4, 2.2)),
+    # An edge pressed along a direction 35 degrees from x, five times as long as wide.
+    ([0.05, 0.1, 1.0, 0.006, 0.004, -0.005], Contact.elongated(1.5, 0.5, 3.0, 5.0, 0.61)),
 ]
 # Flat and part-flat patches: their edge is singular, which sampling on a fine grid does not
 # resolve (it misses a fifth of a flat punch's load), so their transform is checked against
@@ -112,6 +123,7 @@ SPECTRUM_CASES = [
 FLAT_CASES = [
     ([0.15, 0.1, 1.0, -0.006, 0.009, 0.005], Contact(1.2, 0.8, 3.0, 1.0)),
     ([-0.05, 0.2, 0.6, 0.003, 0.002, -0.004], Contact(-2.0, 3.1, 2.6, 0.4)),
+    ([0.1, -0.1, 0.9, -0.002, 0.005, 0.003], Contact(0.8, -1.1, 2.8, 0.7, -0.6, 0.3)),
 ]
 
 
@@ -227,7 +239,44 @@ def test_traction_spectrum_gradients():
         spectrum = traction_spectrum(wrench, contact, grid)
         return jnp.stack([spectrum.real, spectrum.imag])
 
-    check_grad_against_fd(f, (jnp.array([0.1, -0.05, 0.9, 0.003, -0.002, 0.004]), Contact(1.0, -0.5, 3.0, 0.3)))
+    wrench = jnp.array([0.1, -0.05, 0.9, 0.003, -0.002, 0.004])
+    check_grad_against_fd(f, (wrench, Contact(1.0, -0.5, 3.0, 0.3)))
+    # Elongated, and through the round patch, where the stretch's direction means nothing
+    # and its shape tensor comes from a series.
+    check_grad_against_fd(f, (wrench, Contact(1.0, -0.5, 3.0, 0.3, 0.4, -0.2)))
+    check_grad_against_fd(f, (wrench, Contact(1.0, -0.5, 3.0, 0.3, 0.0, 0.0)))
+
+
+def test_elongated_patch_reads_its_shape():
+    contact = Contact.elongated(0.0, 0.0, 3.0, 4.0, 0.3)
+    assert float(contact.aspect_ratio) == pytest.approx(4.0, rel=1e-12)
+    assert float(contact.long_axis_angle) == pytest.approx(0.3, rel=1e-12)
+    pxx, pxy, pyy = contact.shape_tensor()
+    assert float(pxx * pyy - pxy**2) == pytest.approx(1.0, rel=1e-12)
+    # Its pressure spreads twice the radius along the long axis and half of it across: the
+    # round patch's second moment (r^2/5 per unit force, with the smoothed edge's share),
+    # times 4 along and over 4 across.
+    grid = surface_grid((256, 256), 16.0, (512, 512), 3.0, 12.0)
+
+    def pressure(contact):
+        return (
+            np.asarray(surface_tractions(jnp.array([0.0, 0, 1.0, 0, 0, 0]), contact, grid)[2])
+            * float(grid.spacing) ** 2
+        )
+
+    p, round_p = pressure(contact), pressure(Contact(0.0, 0.0, 3.0))
+    along = np.cos(0.3) * np.asarray(grid.X) + np.sin(0.3) * np.asarray(grid.Y)
+    across = -np.sin(0.3) * np.asarray(grid.X) + np.cos(0.3) * np.asarray(grid.Y)
+    round_moment = np.sum(round_p * along**2)
+    assert round_moment == pytest.approx(9 / 5, rel=0.1)
+    assert np.sum(p * along**2) == pytest.approx(4 * round_moment, rel=1e-5)
+    assert np.sum(p * across**2) == pytest.approx(round_moment / 4, rel=1e-5)
+    assert abs(np.sum(p * along * across)) < 1e-5
+    # The series near the round patch meets the closed form.
+    for k in (np.sqrt(0.99e-4), np.sqrt(1.01e-4)):
+        near = Contact(0.0, 0.0, 3.0, 0.0, k * 0.6, k * 0.8).shape_tensor()
+        exact = scipy.linalg.expm(2 * np.array([[0.6 * k, 0.8 * k], [0.8 * k, -0.6 * k]]))
+        assert np.allclose([float(v) for v in near], [exact[0, 0], exact[0, 1], exact[1, 1]], rtol=0, atol=1e-13)
 
 
 @pytest.mark.parametrize(

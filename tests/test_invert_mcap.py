@@ -298,3 +298,26 @@ def test_a_frame_read_with_two_contacts_has_a_pressure_map_of_two_patches(tmp_pa
     # A file written before the second patch's share was a column draws the whole load on one patch.
     assert old[:, w // 2 :].sum() < 1e-3 * old.sum()
     assert records[1]["contact_area_mm2"] == pytest.approx(math.pi * 2.5**2)
+
+
+def test_an_elongated_patch_has_an_elongated_pressure_map(tmp_path):
+    folder = frames_folder(tmp_path, 1)
+    header = CSV_HEADER.replace("radius,status", "radius,flatness,aspect_ratio,long_axis_angle,status")
+    sigma = ",".join(["1e-3"] * 6)
+    # An edge along y (90 degrees), four times as long as wide, at the centre.
+    angle = math.pi / 2
+    row = f"f0.png,0,0,1.0,0,0,0,{sigma},0,0,2.5,0,4,{angle},converged,edge"
+    (tmp_path / "w.csv").write_text(header + "\n" + row + "\n")
+    device = mj.preset("mid", height=256, width=256, px_per_mm=8.0)
+    with McapSink(tmp_path / "run.mcap") as sink:
+        record_inversion(sink, folder, tmp_path / "w.csv", device)
+    (m,) = list(read(tmp_path / "run.mcap", "/moirejax/pressure"))
+    pressure = np.frombuffer(m.ros_msg.data, "<f4").reshape(m.ros_msg.height, m.ros_msg.width).astype(float)
+    rows, cols = np.indices(pressure.shape)
+    centre_r, centre_c = (np.asarray(pressure.shape) - 1) / 2
+    spread_rows = np.sum(pressure * (rows - centre_r) ** 2) / pressure.sum()
+    spread_cols = np.sum(pressure * (cols - centre_c) ** 2) / pressure.sum()
+    # Semi-axes 2 r along y and r / 2 across: second moments sixteen times apart.
+    assert spread_rows / spread_cols == pytest.approx(16.0, rel=0.1)
+    (record,) = [json.loads(m.ros_msg.data) for m in read(tmp_path / "run.mcap", "/moirejax/record")]
+    assert record["contact_area_mm2"] == pytest.approx(math.pi * 2.5**2)

@@ -43,7 +43,7 @@ def test_noise_free_frame_recovers_the_load_from_a_perturbed_start():
     device = _device()
     truth = _truth()
     # Off in every unknown, the wrench by about 2% of its range.
-    offset = jnp.asarray([0.02, -0.02, 0.01, 0.02, -0.02, 0.02, 0.05, -0.05, 0.03, 0.05, 0.01])
+    offset = jnp.asarray([0.02, -0.02, 0.01, 0.02, -0.02, 0.02, 0.05, -0.05, 0.03, 0.05, 0.04, -0.03, 0.01])
     start = mj.LoadState.from_vector(truth.vector() + offset)
     fit = _refine(device, _frame(device), start, NOISE, mechanics_shape=SHAPE)
     assert int(fit.status) == int(mj.Status.CONVERGED) and bool(fit.converged)
@@ -61,16 +61,16 @@ def test_covariance_is_the_inverse_fisher_information():
     fit = _refine(device, frame, _truth(), NOISE, mechanics_shape=SHAPE)
 
     # A second route: central differences of the frame in (wrench, x0, y0, radius,
-    # flatness, exposure), the camera noise by hand (the pixel fit has no priors). The
-    # fit's log radius and log exposure change the nuisance parameterisation only, which
-    # leaves the wrench block unchanged.
-    theta = np.concatenate([WRENCH, [X0, Y0, RADIUS, 0.0, EXPOSURE]])
+    # flatness, elongation, exposure), the camera noise by hand (the pixel fit has no
+    # priors). The fit's log radius and log exposure change the nuisance parameterisation
+    # only, which leaves the wrench block unchanged.
+    theta = np.concatenate([WRENCH, [X0, Y0, RADIUS, 0.0, 0.0, 0.0, EXPOSURE]])
 
     def render(t):
-        contact = Contact(x0=t[6], y0=t[7], radius=t[8], flatness=t[9])
-        return np.asarray(render_frame(device, jnp.asarray(t[:6]), contact, exposure=t[10], mechanics_shape=SHAPE))
+        contact = Contact(x0=t[6], y0=t[7], radius=t[8], flatness=t[9], stretch_x=t[10], stretch_xy=t[11])
+        return np.asarray(render_frame(device, jnp.asarray(t[:6]), contact, exposure=t[12], mechanics_shape=SHAPE))
 
-    J = finite_difference_jacobian(render, theta, [1e-5] * 3 + [1e-7] * 3 + [1e-5] * 5)
+    J = finite_difference_jacobian(render, theta, [1e-5] * 3 + [1e-7] * 3 + [1e-5] * 7)
     variance = camera_variance(frame, full_well=3000.0, read_noise=5.0).ravel()
     information = (J / variance) @ J.T
     covariance = np.linalg.inv(information)[:6, :6]

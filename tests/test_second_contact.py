@@ -98,3 +98,27 @@ def test_two_fingertips_are_read_with_two_patches(mid, simulator, inverter):
     row = dict(zip(CSV_HEADER, _rows(["f"], jax.tree.map(lambda x: x[None], estimate), [None])[0]))
     assert row["contacts"] == 1 and np.isnan(row["second_fz"])
     assert np.all(np.abs((np.asarray(estimate.wrench) - truth) / SCALE) < 0.02)
+    # A round patch explains it: its elongation is never freed.
+    assert float(estimate.contact.aspect_ratio) == 1.0
+
+
+def test_an_edge_is_read_with_one_elongated_patch(mid, simulator, inverter):
+    # An edge 10 mm long and 1.6 mm wide, pressed and sheared, through the simulator's own
+    # line mechanics (a stadium-shaped pressure, not the inversion's ellipse).
+    edge = Indenter("line", 1.0, -1.0, 5.0, 0.8, angle=0.5, force=(0.05, -0.08, 0.8), twist=0.002)
+    frame, truth = _frame(simulator, mid, [edge])
+    estimate = invert(inverter, frame)
+    assert Status(int(estimate.status)) in (Status.CONVERGED, Status.MAX_STEPS), Status(int(estimate.status))
+    assert int(estimate.contacts) == 1
+    contact = estimate.contact
+    assert float(contact.aspect_ratio) > 3.0
+    assert abs(float(contact.long_axis_angle) - 0.5) < np.radians(3.0)
+    assert np.hypot(float(contact.x0) - 1.0, float(contact.y0) + 1.0) < 0.3
+    # The normal force and the torques within 5 % of their ranges; the shear within 20 %: the
+    # ellipse spreads it like its pressure, which is not the stadium's (read through one
+    # round patch or two, edges read Fz at R2 0.08 on the contact-shape benchmark).
+    error = np.abs(np.asarray(estimate.wrench) - truth) / SCALE
+    assert np.all(error[2:] < 0.05) and np.all(error[:2] < 0.2), error
+    row = dict(zip(CSV_HEADER, _rows(["f"], jax.tree.map(lambda x: x[None], estimate), [None])[0]))
+    assert row["aspect_ratio"] == pytest.approx(float(contact.aspect_ratio))
+    assert row["long_axis_angle"] == pytest.approx(float(contact.long_axis_angle))

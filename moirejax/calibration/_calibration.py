@@ -176,8 +176,7 @@ def latents_from_wrench(wrench: np.ndarray, dtype=None) -> LoadState:
         jnp.asarray(x0, scaled.dtype),
         jnp.asarray(y0, scaled.dtype),
         full(rest.log_radius),
-        full(0.0),
-        full(0.0),
+        *(full(0.0) for _ in range(4)),
     )
 
 

@@ -74,9 +74,15 @@ from ..observe import (
 )
 from ..physics import Contact, Device, grid_shape
 from ._estimate import finish
-from ._second_contact import _PAIR_UNEXPLAINED_SHARE, _SECOND_CONTACT_TRIGGER, ContactPair, solve_pair
-from ._solvers import best_start, chord, solve_cold
-from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track, TYPICAL_RADIUS
+from ._second_contact import (
+    _PAIR_UNEXPLAINED_SHARE,
+    _SECOND_CONTACT_GAIN,
+    _SECOND_CONTACT_TRIGGER,
+    ContactPair,
+    solve_pair,
+)
+from ._solvers import best_start, chord, levenberg_marquardt, solve_cold
+from ._state import Estimate, LoadState, N_PRIORS, N_UNKNOWNS, Status, Track, TYPICAL_RADIUS
 
 
 # Prior width of the centre-of-pressure offset from the contact centre (N*mm of moment); the
@@ -238,6 +244,7 @@ class Inverter(eqx.Module):
     reference_noise: Float[Array, ""]
     fitted_light: Bool[Array, ""]
     fitted_flatness: Bool[Array, ""]
+    fitted_elongation: Bool[Array, ""]
     model_shape: tuple[int, int] = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
     tolerance: float = eqx.field(static=True)
@@ -287,6 +294,7 @@ class Inverter(eqx.Module):
         self.brightness = bool(brightness)
         self.fitted_light = jnp.asarray(False)
         self.fitted_flatness = jnp.asarray(True)
+        self.fitted_elongation = jnp.asarray(False)
         self.chord_steps = chord_steps
         self.chord_tolerance = chord_tolerance
         sets = device.n_sets
@@ -399,10 +407,19 @@ class Inverter(eqx.Module):
         return self.model(state.wrench, self._modelled_contact(state.contact), state.exposure)
 
     def _modelled_contact(self, contact: Contact) -> Contact:
-        # A solve that holds the contact's pressure rounded (the first stages of a cold solve,
-        # `solve_cold`; the starts of a two-patch solve) sees no flatness: its coordinate
-        # keeps its start, pulled only by its prior.
-        return eqx.tree_at(lambda c: c.flatness, contact, jnp.where(self.fitted_flatness, contact.flatness, 0.0))
+        # A solve that holds the contact's flatness (the first stages of a cold solve,
+        # `solve_cold`; the starts of a two-patch solve) sees a sphere's pressure, and one
+        # that holds its elongation (all but `Inverter.second_contact`'s) a round patch:
+        # their coordinates keep their start, pulled only by their priors.
+        return eqx.tree_at(
+            lambda c: (c.flatness, c.stretch_x, c.stretch_xy),
+            contact,
+            (
+                jnp.where(self.fitted_flatness, contact.flatness, 0.0),
+                jnp.where(self.fitted_elongation, contact.stretch_x, 0.0),
+                jnp.where(self.fitted_elongation, contact.stretch_xy, 0.0),
+            ),
+        )
 
     def _unit_noise_residuals(self, samples: int = 48) -> Float[Array, "samples n"]:
         """Data residuals that unit white pixel noise alone produces, `samples` draws.
@@ -546,24 +563,22 @@ class Inverter(eqx.Module):
         flatness = state.flatness_misfit()
         exposure = state.log_exposure / _EXPOSURE_PRIOR
         # Priors are in units of the data noise so their weight does not depend on it.
-        return (
-            jnp.concatenate([tilt, radius[None], flatness[None], state.scaled_wrench / _WRENCH_PRIOR, exposure[None]])
-            * noise
-        )
+        misfits = [tilt, radius[None], flatness[None], state.stretch_misfit(), state.scaled_wrench / _WRENCH_PRIOR]
+        return jnp.concatenate([*misfits, exposure[None]]) * noise
 
     def residuals(self, y, args):
         """Whitened data residuals followed by the prior residuals (optimistix signature)."""
         observed, noise = args
         return jnp.concatenate([self._data_residuals(y, observed), self._prior_residuals(y, noise)])
 
-    def _wrench_rows(self, dtype) -> Float[Array, "6 11"]:
+    def _wrench_rows(self, dtype) -> Float[Array, "6 13"]:
         # The scaled wrench among the solvers' coordinates, as the rows of a linear map.
         return jnp.eye(6, N_UNKNOWNS, dtype=dtype)
 
     def _summary(self, y) -> tuple[LoadState, Contact, Float[Array, "6"]]:
         # The state an estimate reports, its second contact (none) and that one's wrench.
         nan = jnp.full((), jnp.nan, y.dtype)
-        return LoadState.from_vector(y), Contact(nan, nan, nan, nan), jnp.zeros(6, y.dtype)
+        return LoadState.from_vector(y), Contact(nan, nan, nan, nan, nan, nan), jnp.zeros(6, y.dtype)
 
     def observe(self, frame: Float[Array, "h w"]) -> FringeFields:
         """Demodulate a frame, normalised at the reference frame's wavevectors."""
@@ -650,7 +665,7 @@ class Inverter(eqx.Module):
         zero = jnp.zeros((), excess.dtype)
         moment = fz / NMM_PER_NM
         scaled = jnp.stack([zero, zero, fz / scale[2], y0 * moment / scale[3], -x0 * moment / scale[4], zero])
-        return LoadState(scaled, x0, y0, jnp.log(jnp.asarray(TYPICAL_RADIUS, excess.dtype)), zero, zero)
+        return LoadState(scaled, x0, y0, jnp.log(jnp.asarray(TYPICAL_RADIUS, excess.dtype)), zero, zero, zero, zero)
 
     def fringe_change_centre(self, observed: FringeFields) -> Float[Array, "2"]:
         """Where the fringes changed most from the reference: the centroid (mm, contact
@@ -911,16 +926,22 @@ class Inverter(eqx.Module):
         return finish(fit, screen, observed, fit._zero_residuals(observed), noise, y, r, jacobian, steps, result, y0)[0]
 
     def second_contact(self, frame: Real[Array, "h w"], estimate: Estimate) -> Estimate:
-        """`estimate` of `frame`, read again with two contact patches where one leaves more
-        than 5 % of the fringe phase's change unexplained (`Estimate.misfit`) and two
-        explain most of what it left; otherwise `estimate` itself. Pure and jit-able.
+        """`estimate` of `frame`, read again where its round patch leaves more than 5 % of
+        the fringe phase's change unexplained (`Estimate.misfit`): with one elongated patch
+        and with two round ones, each a candidate where it leaves less than half of what
+        the round patch left, the better of the candidates kept; otherwise `estimate`
+        itself. Pure and jit-able.
 
-        Two fingertips on the pad, or an edge, read through one patch come out wrong on
-        every axis. [`invert`][] and `moirejax invert` call this on every frame whose
-        estimate needs it (a stream from a camera does not: the solve takes seconds). The
-        estimate's `second_contact` and `second_wrench` then say where the second patch is
-        and what it carries; see `moirejax.inverse._second_contact` for how it is found and
-        when it is kept.
+        An edge or a cylinder pressed along its length, or two fingertips on the pad, read
+        through one round patch come out wrong on every axis. [`invert`][] and `moirejax
+        invert` call this on every frame whose estimate needs it (a stream from a camera
+        does not: the solves take seconds). The estimate's `contact` then has an
+        elongation ([`Contact.aspect_ratio`][moirejax.Contact.aspect_ratio]), or its
+        `second_contact` and `second_wrench` say where the second patch is and what it
+        carries; see `moirejax.inverse._second_contact` for how it is found and when it is
+        kept. A frame a round patch explains keeps it: a free elongation would trade the
+        normal force for the shape of a round contact's misfit (on an independent
+        renderer's spheres, whose misfit is its aliasing, it took Fz from R² 0.91 to 0.83).
         """
         screen, observed, _, noise = self._prepare(frame)
         args = (observed, noise)
@@ -932,8 +953,29 @@ class Inverter(eqx.Module):
         believed = (status == Status.CONVERGED) | (status == Status.MAX_STEPS) | (status == Status.UNEXPLAINED)
         needed = believed & (estimate.contacts == 1) & (estimate.misfit > _SECOND_CONTACT_TRIGGER)
 
-        def two_patches(_):
+        def reread(_):
+            elongated = eqx.tree_at(lambda i: i.fitted_elongation, fit, jnp.asarray(True))
+            y1, r1, jacobian1, steps1, result1 = levenberg_marquardt(elongated, y, args, more_starts=False)
+            n_data = r.shape[0] - N_PRIORS
+            round_cost, long_cost = jnp.sum(r[:n_data] ** 2), jnp.sum(r1[:n_data] ** 2)
+            long_kept = jnp.isfinite(long_cost) & (long_cost < _SECOND_CONTACT_GAIN * round_cost)
+            single = finish(
+                elongated,
+                screen,
+                observed,
+                r_zero,
+                noise,
+                y1,
+                r1,
+                jacobian1,
+                estimate.steps + steps1,
+                result1,
+                y1,
+            )[0]
+            single = jax.tree_util.tree_map(lambda a, b: jnp.where(long_kept, a, b), single, estimate)
             y2, r2, jacobian2, steps2, result2, kept = solve_pair(fit, y, r, args)
+            # Both halve the round patch's misfit: the one that explains the frame better.
+            kept = kept & ~(long_kept & (long_cost <= jnp.sum(r2[:n_data] ** 2)))
             pair = finish(
                 ContactPair(fit),
                 screen,
@@ -943,14 +985,14 @@ class Inverter(eqx.Module):
                 y2,
                 r2,
                 jacobian2,
-                estimate.steps + steps2,
+                single.steps + steps2,
                 result2,
                 y2,
                 unexplained_share=_PAIR_UNEXPLAINED_SHARE,
             )[0]
-            return jax.tree_util.tree_map(lambda a, b: jnp.where(kept, a, b), pair, estimate)
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(kept, a, b), pair, single)
 
-        return jax.lax.cond(needed, two_patches, lambda _: estimate, None)
+        return jax.lax.cond(needed, reread, lambda _: estimate, None)
 
     def chord_batch(self, frames: Real[Array, "b h w"], track: "Track") -> tuple[Estimate, Bool[Array, " b"], "Track"]:
         """Frozen-Jacobian iterations for a batch of nearby frames from one shared `track`.

@@ -27,11 +27,15 @@ CSV_HEADER = (
     "y0",
     "radius",
     "flatness",
+    "aspect_ratio",
+    "long_axis_angle",
     "contacts",
     "second_x0",
     "second_y0",
     "second_radius",
     "second_flatness",
+    "second_aspect_ratio",
+    "second_long_axis_angle",
     *(f"second_{c}" for c in WRENCH_AXES),
     "status",
     "message",
@@ -203,6 +207,11 @@ def load_reference_image(path: str | Path) -> np.ndarray:
     return _to_gray(image)
 
 
+def _patch_columns(c) -> list[np.ndarray]:
+    """A patch's columns: centre, radius, flatness, aspect ratio and long axis' direction."""
+    return [np.asarray(v) for v in (c.x0, c.y0, c.radius, c.flatness, c.aspect_ratio, c.long_axis_angle)]
+
+
 def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head=None) -> list[list]:
     wrench = np.asarray(estimate.wrench)
     if head is not None:
@@ -214,10 +223,9 @@ def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head
     sigma = np.asarray(estimate.sigma)
     status = np.asarray(estimate.status)
     c = estimate.contact
-    patch = [np.asarray(v) for v in (c.x0, c.y0, c.radius, c.flatness)]
     second = estimate.second_contact
     contacts = np.asarray(estimate.contacts)
-    patch += [contacts, *(np.asarray(v) for v in (second.x0, second.y0, second.radius, second.flatness))]
+    patch = [*_patch_columns(c), contacts, *_patch_columns(second)]
     # The second patch's share of the wrench; NaN for a frame read with one patch.
     second_wrench = np.where(contacts[:, None] == 2, np.asarray(estimate.second_wrench), np.nan)
     rows = []

@@ -79,7 +79,7 @@ def _residuals(y, args, mechanics_shape) -> tuple[Float[Array, " n"], Float[Arra
     return residuals, jnp.sum(unclipped.astype(residuals.dtype))
 
 
-def _linearise(y, args, mechanics_shape) -> tuple[Float[Array, " n"], Float[Array, "11 n"], Float[Array, ""]]:
+def _linearise(y, args, mechanics_shape) -> tuple[Float[Array, " n"], Float[Array, "13 n"], Float[Array, ""]]:
     """Residuals, their transposed Jacobian (one linearisation, a tangent per unknown vmapped)
     and the number of informative pixels."""
     r, jvp, used = jax.linearize(lambda y_: _residuals(y_, args, mechanics_shape), y, has_aux=True)
@@ -87,7 +87,7 @@ def _linearise(y, args, mechanics_shape) -> tuple[Float[Array, " n"], Float[Arra
     return r, jax.vmap(jvp)(jnp.eye(N_UNKNOWNS, dtype=y.dtype)), used
 
 
-def _inverse_information(jacobian_t: Float[Array, "11 n"]) -> Float[Array, "11 11"]:
+def _inverse_information(jacobian_t: Float[Array, "13 n"]) -> Float[Array, "13 13"]:
     information = jacobian_t @ jacobian_t.T
     # Normalised to unit diagonal before inverting, so float32 loses nothing to the units.
     scale = jax.lax.rsqrt(jnp.diagonal(information))
@@ -112,13 +112,13 @@ def refine_in_pixels(
     residual of [`render_frame`][] with the camera noise of [`pixel_noise_variance`][];
     clipped pixels (predicted at or beyond 0 or 1) weigh nothing. The unknowns are those
     of the inversion: the wrench over the paper's ranges, the contact centre (mm), the log
-    contact radius, the contact's flatness and the log exposure, without the inversion's
+    contact radius, the contact's flatness and elongation and the log exposure, without the inversion's
     priors. They are
     measured in standard errors at `start` (one Jacobian, which also takes the first
     step), so that the solve stops when a step moves every unknown by less than
     `tolerance` of its standard error; convergence is quadratic by then, and the answer
     within about 1e-3 of a standard error. Each step costs one linearisation of the
-    renderer and eleven vmapped tangents; from a band estimate the fit takes three steps, and
+    renderer and thirteen vmapped tangents; from a band estimate the fit takes three steps, and
     one more linearisation for the covariance.
 
     This is the efficient estimator **for frames the renderer describes exactly**: on a

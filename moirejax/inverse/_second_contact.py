@@ -8,9 +8,10 @@ apart, one patch read Fz at R² −0.9 and Ty at −1.4).
 
 The elastomer layer is linear: two contacts deform it by the sum of what each does alone,
 and the light each scatters adds too ([`BandModel.of_contacts`][moirejax.BandModel.of_contacts]).
-So a second patch costs ten more unknowns (its wrench about the origin, its centre, its
-radius and flatness; the frame's exposure is shared) and no new physics. The frame's wrench is the sum
-of the two, and its covariance is that sum's, from the Jacobian of all twenty-one unknowns.
+So a second patch costs twelve more unknowns (its wrench about the origin, its centre, its
+radius, flatness and elongation, which the pair holds round; the frame's exposure is shared) and
+no new physics. The frame's wrench is
+the sum of the two, and its covariance is that sum's, from the Jacobian of all twenty-five unknowns.
 
 A second patch can explain noise and model error as readily as a second contact, so it is
 tried only on a frame that one patch leaves poorly explained, and kept only where it
@@ -69,14 +70,14 @@ _PROBE_FORCE = 0.3
 _SPLIT = 0.5
 
 
-def pair_states(y: Float[Array, "21"]) -> tuple[LoadState, LoadState]:
+def pair_states(y: Float[Array, "25"]) -> tuple[LoadState, LoadState]:
     """The two patches' [`LoadState`][]s of a two-patch coordinate vector (shared exposure)."""
     first = y[:N_UNKNOWNS]
     second = jnp.concatenate([y[N_UNKNOWNS:], y[N_UNKNOWNS - 1 : N_UNKNOWNS]])
     return LoadState.from_vector(first), LoadState.from_vector(second)
 
 
-def _pair_vector(first: LoadState, second: LoadState) -> Float[Array, "21"]:
+def _pair_vector(first: LoadState, second: LoadState) -> Float[Array, "25"]:
     return jnp.concatenate([first.vector(), second.vector()[: N_UNKNOWNS - 1]])
 
 
@@ -116,7 +117,7 @@ class ContactPair(eqx.Module):
     def _prior_jacobian(self, y, noise):
         return jax.jacfwd(self._prior_residuals)(y, noise)
 
-    def _wrench_rows(self, dtype) -> Float[Array, "6 21"]:
+    def _wrench_rows(self, dtype) -> Float[Array, "6 25"]:
         # The frame's scaled wrench is the sum of the patches'.
         eye = jnp.eye(6, dtype=dtype)
         return jnp.concatenate(
@@ -169,7 +170,7 @@ class ContactPair(eqx.Module):
         return self.inverter._phase_change_statistic(observed, screen)
 
 
-def _split(first: LoadState, x: Float[Array, ""], y: Float[Array, ""]) -> Float[Array, "21"]:
+def _split(first: LoadState, x: Float[Array, ""], y: Float[Array, ""]) -> Float[Array, "25"]:
     """A two-patch start: `_SPLIT` of the patch's forces moved to a patch at `(x, y)` of the
     same radius, pressing at its own centre; the first patch keeps the rest of the wrench."""
     wrench = first.wrench
@@ -180,7 +181,7 @@ def _split(first: LoadState, x: Float[Array, ""], y: Float[Array, ""]) -> Float[
     return _pair_vector(kept, second)
 
 
-def _matched_press(pair: ContactPair, first: LoadState, observed, x, y, away, r_one) -> Float[Array, "21"]:
+def _matched_press(pair: ContactPair, first: LoadState, observed, x, y, away, r_one) -> Float[Array, "25"]:
     """The one patch, and a second patch where a contact explains most of what the one patch
     leaves: at every `_SEARCH_STEP`-th coarse-grid point `away` from the one patch, the data
     residual's changes under a `_PROBE_FORCE` press and shear each way there, and the
@@ -222,7 +223,8 @@ def solve_pair(problem: "Inverter", y1, r1, args):
     result, kept)` of the best
     (`r` and `jacobian` those of [`ContactPair`][moirejax.inverse._second_contact.ContactPair]),
     `kept` whether it beats the one patch by `_SECOND_CONTACT_GAIN`. The runs from the starts
-    hold both patches rounded; a last run from the best frees their flatness."""
+    hold both patches rounded; a last run from the best frees their flatness (both stay
+    round: an elongated single patch is `Inverter.second_contact`'s other candidate)."""
     observed, _ = args
     pair = ContactPair(problem)
     first = LoadState.from_vector(y1)

@@ -153,7 +153,7 @@ def chord(problem: "Inverter", y, r, jacobian, args):
     r"""Gauss–Newton iterations from the last frame's Jacobian, kept current by Broyden updates.
 
     At camera rate consecutive frames are close, so the data Jacobian barely changes;
-    reusing it makes each iteration one model evaluation instead of eleven. Each step
+    reusing it makes each iteration one model evaluation instead of thirteen. Each step
     $\Delta y$ and the residual change $\Delta r$ it caused (exact: same frame, same
     model) update the Jacobian along that direction,
     $J \leftarrow J + (\Delta r - J\Delta y)\Delta y^\top / \Delta y^\top\Delta y$,

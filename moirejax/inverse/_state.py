@@ -25,12 +25,16 @@ RADIUS_PRIOR_WIDTH = 0.6
 # shape, and the prior then keeps it rounded.
 FLATNESS_PRIOR_WIDTH = 1.0
 _FLATNESS_OVERSHOOT = 0.05
+# The contact's elongation (`Contact.stretch_x`, `Contact.stretch_xy`) has a prior centred on a
+# round patch, this wide in each component of the log-stretch: an edge ten times as long as
+# wide (k = 1.15) is about one width away, and a light load keeps the patch round.
+STRETCH_PRIOR_WIDTH = 1.0
 # How many unknowns a frame has, and where the scaled wrench sits among the solvers'
 # coordinates (`LoadState.vector`).
-N_UNKNOWNS = 11
+N_UNKNOWNS = 13
 # The problem's prior residuals (`Inverter`): the tilt (2), the radius (1), the flatness (1),
-# the wrench (6) and the exposure (1); the exposure's comes last.
-N_PRIORS = 11
+# the elongation (2), the wrench (6) and the exposure (1); the exposure's comes last.
+N_PRIORS = 13
 WRENCH_COORDINATES = slice(0, 6)
 
 
@@ -44,6 +48,8 @@ class LoadState(eqx.Module):
     - `log_radius`: the log of the contact radius (mm).
     - `flatness`: how flat the pressure is across the contact, from a sphere's (0) to a flat
       punch's (1) ([`Contact`][moirejax.Contact]).
+    - `stretch_x`, `stretch_xy`: the contact's elongation from a round patch (0, 0)
+      ([`Contact`][moirejax.Contact]).
     - `log_exposure`: the log of the frame's exposure factor against the device's.
 
     [`Estimate.state`][moirejax.Estimate] is one; pass it as `init` to warm-start the next
@@ -56,13 +62,16 @@ class LoadState(eqx.Module):
     y0: Float[Array, "*b"]
     log_radius: Float[Array, "*b"]
     flatness: Float[Array, "*b"]
+    stretch_x: Float[Array, "*b"]
+    stretch_xy: Float[Array, "*b"]
     log_exposure: Float[Array, "*b"]
 
     @classmethod
     def at_rest(cls, x0: float = 0.0, y0: float = 0.0, radius: float = TYPICAL_RADIUS, dtype=float) -> "LoadState":
         """No load, a contact guess at `(x0, y0)` of `radius` mm, the device's exposure."""
         scalar = lambda v: jnp.asarray(v, dtype)  # noqa: E731
-        return cls(jnp.zeros(6, dtype), scalar(x0), scalar(y0), scalar(math.log(radius)), scalar(0.0), scalar(0.0))
+        zero = scalar(0.0)
+        return cls(jnp.zeros(6, dtype), scalar(x0), scalar(y0), scalar(math.log(radius)), zero, zero, zero, zero)
 
     @classmethod
     def from_load(
@@ -77,6 +86,8 @@ class LoadState(eqx.Module):
             jnp.asarray(contact.y0, dtype),
             jnp.log(jnp.asarray(contact.radius, dtype)),
             jnp.asarray(contact.flatness, dtype),
+            jnp.asarray(contact.stretch_x, dtype),
+            jnp.asarray(contact.stretch_xy, dtype),
             jnp.log(jnp.asarray(exposure, dtype)),
         )
 
@@ -87,7 +98,14 @@ class LoadState(eqx.Module):
 
     @property
     def contact(self) -> Contact:
-        return Contact(x0=self.x0, y0=self.y0, radius=jnp.exp(self.log_radius), flatness=self.contact_flatness)
+        return Contact(
+            x0=self.x0,
+            y0=self.y0,
+            radius=jnp.exp(self.log_radius),
+            flatness=self.contact_flatness,
+            stretch_x=self.stretch_x,
+            stretch_xy=self.stretch_xy,
+        )
 
     @property
     def exposure(self) -> Float[Array, "*b"]:
@@ -101,6 +119,10 @@ class LoadState(eqx.Module):
     def flatness_misfit(self) -> Float[Array, "*b"]:
         """How far the pressure's shape is from a rounded indenter's, in widths of its prior."""
         return self.flatness / FLATNESS_PRIOR_WIDTH
+
+    def stretch_misfit(self) -> Float[Array, "*b 2"]:
+        """How far the contact is from a round patch, each component in widths of its prior."""
+        return jnp.stack([self.stretch_x, self.stretch_xy], axis=-1) / STRETCH_PRIOR_WIDTH
 
     @property
     def contact_flatness(self) -> Float[Array, "*b"]:
@@ -129,18 +151,22 @@ class LoadState(eqx.Module):
             lambda s: (s.x0, s.y0), self, (jnp.asarray(x0, self.x0.dtype), jnp.asarray(y0, self.y0.dtype))
         )
 
-    def vector(self) -> Float[Array, "*b 11"]:
+    def vector(self) -> Float[Array, "*b 13"]:
         """The solvers' coordinates: the scaled wrench, the contact centre, the log radius, the
-        flatness and the log exposure, in that order (the exposure last: two contacts share it)."""
-        tail = jnp.stack([self.x0, self.y0, self.log_radius, self.flatness, self.log_exposure], axis=-1)
+        flatness, the elongation and the log exposure, in that order (the exposure last: two
+        contacts share it)."""
+        tail = jnp.stack(
+            [self.x0, self.y0, self.log_radius, self.flatness, self.stretch_x, self.stretch_xy, self.log_exposure],
+            axis=-1,
+        )
         return jnp.concatenate([self.scaled_wrench, tail], axis=-1)
 
     @classmethod
-    def from_vector(cls, y: Float[Array, "*b 11"]) -> "LoadState":
+    def from_vector(cls, y: Float[Array, "*b 13"]) -> "LoadState":
         """The state whose [`vector`][moirejax.LoadState.vector] is `y`."""
         if y.shape[-1] != N_UNKNOWNS:
             raise ValueError(f"a load state has {N_UNKNOWNS} coordinates, got shape {y.shape}")
-        return cls(y[..., WRENCH_COORDINATES], y[..., 6], y[..., 7], y[..., 8], y[..., 9], y[..., 10])
+        return cls(y[..., WRENCH_COORDINATES], *(y[..., k] for k in range(6, N_UNKNOWNS)))
 
 
 class Status(enum.IntEnum):
@@ -228,6 +254,6 @@ class Track(eqx.Module):
     contact. Make the first one with [`Inverter.cold_track`][]."""
 
     state: LoadState
-    jacobian: Float[Array, "n 11"]
+    jacobian: Float[Array, "n 13"]
     change: Float[Array, " n"]
     valid: Bool[Array, ""]

@@ -409,26 +409,28 @@ def _read_inversion(path: Path) -> list[dict[str, str]]:
         raise DataError(f"{path}: not a text CSV ({e.reason})") from None
 
 
-def _patches(row: dict[str, str], wrench: np.ndarray, path: Path, line: int) -> list[tuple[np.ndarray, tuple]]:
-    """The contact patches of a row, each `(wrench, (x0, y0, radius, flatness))`: one, or two
-    when the row was read with two and carries the second patch's share of the wrench (files
-    written before that share was a column draw their two contacts as one; files written
-    before the flatness was a column have round patches)."""
-    first = (*(_number(row, c, path, line) for c in ("x0", "y0", "radius")), _flatness(row, "flatness", path, line))
+def _patches(row: dict[str, str], wrench: np.ndarray, path: Path, line: int) -> list[tuple[np.ndarray, Contact]]:
+    """The contact patches of a row, each `(wrench, contact)`: one, or two when the row was
+    read with two and carries the second patch's share of the wrench (files written before
+    that share was a column draw their two contacts as one; files written before the
+    flatness or the elongation was a column have round patches with a sphere's pressure)."""
+    first = _patch(row, "", path, line)
     columns = [f"second_{axis}" for axis in WRENCH_AXES]
     if row.get("contacts") != "2" or any(row.get(c) in (None, "", "nan") for c in columns):
         return [(wrench, first)]
     second_wrench = np.array([_number(row, c, path, line) for c in columns])
-    second = (
-        *(_number(row, f"second_{c}", path, line) for c in ("x0", "y0", "radius")),
-        _flatness(row, "second_flatness", path, line),
+    return [(wrench - second_wrench, first), (second_wrench, _patch(row, "second_", path, line))]
+
+
+def _patch(row: dict[str, str], prefix: str, path: Path, line: int) -> Contact:
+    centre = [_number(row, f"{prefix}{c}", path, line) for c in ("x0", "y0", "radius")]
+    # Files written before the flatness or the elongation was a column: a round patch with
+    # a sphere's pressure.
+    flatness, aspect, angle = (
+        _number(row, f"{prefix}{c}", path, line) if row.get(f"{prefix}{c}") not in (None, "", "nan") else default
+        for c, default in (("flatness", 0.0), ("aspect_ratio", 1.0), ("long_axis_angle", 0.0))
     )
-    return [(wrench - second_wrench, first), (second_wrench, second)]
-
-
-def _flatness(row: dict[str, str], column: str, path: Path, line: int) -> float:
-    # Files written before the patch's flatness was a column: a rounded patch's.
-    return _number(row, column, path, line) if row.get(column) not in (None, "", "nan") else 0.0
+    return Contact.elongated(*centre, aspect, angle, flatness)
 
 
 def _number(row: dict[str, str], column: str, path: Path, line: int) -> float:
@@ -563,7 +565,7 @@ def record_inversion(
             wrench=None if np.all(np.isnan(wrench)) else wrench,
             latency_ms=math.nan,  # offline: no capture-to-output time
             message=row["message"],
-            contact_area_mm2=sum(math.pi * c[2] ** 2 for _, c in patches) if has_load else None,
+            contact_area_mm2=sum(math.pi * float(c.radius) ** 2 for _, c in patches) if has_load else None,
         )
         record = records.finish(record)
         sink.emit(record)
@@ -571,7 +573,9 @@ def record_inversion(
             sink.emit_image(image, record)
         if pressure_of is not None and has_load and hasattr(sink, "emit_pressure"):
             pressure = sum(
-                np.asarray(pressure_of(jnp.asarray(w, dtype), Contact(*(jnp.asarray(v, dtype) for v in c))), np.float32)
+                np.asarray(
+                    pressure_of(jnp.asarray(w, dtype), jax.tree_util.tree_map(lambda v: v.astype(dtype), c)), np.float32
+                )
                 for w, c in patches
             )
             sink.emit_pressure(pressure, record)

@@ -5,7 +5,10 @@ profile $H$ blends the two classical pressures of a rigid indenter on a soft hal
 each normalised to a unit resultant: a sphere's (Hertz, $\sqrt{1 - \rho^2/r^2}$, zero at
 the edge) and a flat punch's (Boussinesq, $1/\sqrt{1 - \rho^2/r^2}$, singular at the edge),
 in the proportion $1 - f$ to $f$, where $f$ is the contact's flatness. A rounded
-fingertip is $f = 0$; a flat face pressed square is $f = 1$. The sampled profile is
+fingertip is $f = 0$; a flat face pressed square is $f = 1$. The patch may be elongated:
+an ellipse of the same area, its semi-axes $r e^{\pm k}$, the profile of the round patch
+stretched along one direction and squeezed across it, for an edge or a cylinder pressed
+along its length. The sampled profile is
 smoothed at the edge so that everything stays differentiable in $r$; shear and torsional
 tractions use the same patch. Each field is a combination of three basis fields whose
 coefficients are solved on the grid so that the discrete resultant about the origin
@@ -44,10 +47,12 @@ _EDGE_SHARPNESS = 20.0
 _PUNCH_EDGE = 0.03
 # Terms of the Hertz transform's series (see `_hertz_transform`).
 _HERTZ_SERIES_TERMS = 10
+# Below this squared log-stretch the patch's shape tensor is taken from its Taylor series.
+_ROUND = 1e-4
 
 
 class Contact(eqx.Module):
-    """Latent contact variables of one frame.
+    r"""Latent contact variables of one frame.
 
     **Arguments:**
 
@@ -55,12 +60,64 @@ class Contact(eqx.Module):
     - `radius`: contact radius (mm).
     - `flatness`: the share of the load carried with a flat punch's pressure, the rest with
       a sphere's: 0 for a rounded indenter, 1 for a flat one (see the module's text).
+    - `stretch_x`, `stretch_xy`: the patch's elongation, as the components $(k\cos 2\theta,
+      k\sin 2\theta)$ of its log-stretch from a circle: an ellipse of the same area with
+      semi-axes $r e^{k}$ along the direction $\theta$ from the x axis and $r e^{-k}$
+      across it. Both 0 for a round patch. (Components rather than $k$ and $\theta$, so
+      that the patch is smooth in them through the round one, where $\theta$ means
+      nothing.) [`Contact.aspect_ratio`][] and [`Contact.long_axis_angle`][] read them.
     """
 
     x0: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
     y0: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
     radius: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=3.0)
     flatness: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
+    stretch_x: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
+    stretch_xy: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
+
+    @property
+    def aspect_ratio(self) -> Float[Array, "*b"]:
+        """The patch's long semi-axis over its short one, $e^{2k}$: 1 for a round patch."""
+        return jnp.exp(2 * jnp.hypot(self.stretch_x, self.stretch_xy))
+
+    @property
+    def long_axis_angle(self) -> Float[Array, "*b"]:
+        r"""The direction of the patch's long axis from the x axis (rad, in $(-\pi/2, \pi/2]$;
+        0 for a round patch)."""
+        return 0.5 * jnp.arctan2(self.stretch_xy, self.stretch_x)
+
+    @classmethod
+    def elongated(
+        cls,
+        x0: ArrayLike,
+        y0: ArrayLike,
+        radius: ArrayLike,
+        aspect_ratio: ArrayLike,
+        angle: ArrayLike,
+        flatness: ArrayLike = 0.0,
+    ) -> "Contact":
+        """A patch of the area of a circle of `radius`, `aspect_ratio` times as long (along
+        `angle`, rad from the x axis) as it is wide."""
+        k = 0.5 * jnp.log(jnp.asarray(aspect_ratio))
+        angle = jnp.asarray(angle)
+        return cls(x0, y0, radius, flatness, k * jnp.cos(2 * angle), k * jnp.sin(2 * angle))
+
+    def shape_tensor(self) -> tuple[Float[Array, "*b"], Float[Array, "*b"], Float[Array, "*b"]]:
+        r"""$(P_{xx}, P_{xy}, P_{yy})$ of $P = S^2$, the square of the patch's stretch $S =
+        \exp\begin{pmatrix} a & b \\ b & -a \end{pmatrix}$ ($a$, $b$ = `stretch_x`,
+        `stretch_xy`): $P = \cosh 2k\, I + \frac{\sinh 2k}{k} \begin{pmatrix} a & b \\ b &
+        -a\end{pmatrix}$ with $k^2 = a^2 + b^2$, $\det P = 1$. The patch's profile at $d$
+        from its centre is the round one's at $\sqrt{d^\top P^{-1} d}$, its second moments
+        are the round one's times $P$, and its transform at $q$ the round one's at
+        $\sqrt{q^\top P q}$."""
+        a, b = self.stretch_x, self.stretch_xy
+        k2 = a * a + b * b
+        small = k2 < _ROUND
+        k = jnp.sqrt(jnp.where(small, 1.0, k2))
+        # cosh 2k and sinh(2k)/k, by their series near the round patch (where k has no derivative).
+        even = jnp.where(small, 1 + 2 * k2 + (2 / 3) * k2 * k2, jnp.cosh(2 * k))
+        odd = jnp.where(small, 2 + (4 / 3) * k2 + (4 / 15) * k2 * k2, jnp.sinh(2 * k) / k)
+        return even + odd * a, odd * b, even - odd * a
 
 
 class SurfaceGrid(eqx.Module):
@@ -115,8 +172,12 @@ def contact_profile(contact: Contact, grid: SurfaceGrid) -> Float[Array, "h w"]:
     r"""The contact's pressure profile with a smooth edge, each part over its resultant:
     $(1 - f)\,\frac{3}{2\pi r^2}\sqrt{g} + f\,\frac{1}{2\pi r^2}\frac{\sqrt{g}}{g + \epsilon}$,
     with $g$ the smoothed gap $\max(1 - \rho^2/r^2, 0)$ and $f$ the flatness; $\epsilon$ caps
-    the punch's edge (at about nine times its centre pressure on the sampled grid)."""
-    rho2 = (grid.X - contact.x0) ** 2 + (grid.Y - contact.y0) ** 2
+    the punch's edge (at about nine times its centre pressure on the sampled grid). On an
+    elongated patch $\rho^2 = d^\top P^{-1} d$ ([`Contact.shape_tensor`][])."""
+    dX, dY = grid.X - contact.x0, grid.Y - contact.y0
+    pxx, pxy, pyy = contact.shape_tensor()
+    # P^-1 of a unit-determinant symmetric P swaps its diagonal and negates the off-diagonal.
+    rho2 = pyy * dX * dX - 2 * pxy * dX * dY + pxx * dY * dY
     gap = jax.nn.softplus(_EDGE_SHARPNESS * (1 - rho2 / contact.radius**2)) / _EDGE_SHARPNESS
     # The tiny floor keeps the square root differentiable where softplus underflows.
     hertz = jnp.sqrt(gap + 1e-20)
@@ -258,21 +319,28 @@ def traction_spectrum(wrench: Float[Array, "6"], contact: Contact, grid: Surface
     kx, ky = wavenumber_grid((rows, cols), grid.spacing, real=True, dtype=dtype)
     kx, ky = kx[None, :], ky[:, None]
     r, x0, y0, f = contact.radius, contact.x0, contact.y0, contact.flatness
-    q2r2 = (kx * kx + ky * ky) * r * r
+    pxx, pxy, pyy = contact.shape_tensor()
+    # The elongated patch's transform is the round one's at |S q| (P = S^2, det S = 1).
+    pqx, pqy = pxx * kx + pxy * ky, pxy * kx + pyy * ky
+    q2r2 = (kx * pqx + ky * pqy) * r * r
     g, dg = _hertz_transform(q2r2)
     sinc, dsinc = _punch_transform(q2r2, g)
     # The unit-resultant profile's transform and its second moment (the int of dX^2 over
-    # it): 3 g(qr) and r^2/5 for the sphere's part, sin(qr)/(qr) and r^2/3 for the punch's.
+    # it): 3 g(qr) and r^2/5 for the sphere's part, sin(qr)/(qr) and r^2/3 for the punch's;
+    # the elongated patch's second moments are m2 P.
     profile = (1 - f) * 3 * g + f * sinc
     m0, m2 = 1.0, r**2 * ((1 - f) / 5 + f / 3)
     # i dH/dq_x and i dH/dq_y, without the factor i (applied below).
     radial = r**2 * ((1 - f) * 3 * dg + f * dsinc)
-    moment_x, moment_y = radial * kx, radial * ky
+    moment_x, moment_y = radial * pqx, radial * pqy
     fx, fy, fz = wrench[0], wrench[1], wrench[2]
     tx, ty, tz = wrench[3] * NMM_PER_NM, wrench[4] * NMM_PER_NM, wrench[5] * NMM_PER_NM
-    # Resultants about the origin of the basis fields centred at (x0, y0): see surface_tractions.
-    c0, cx, cy = fz / m0, -(ty + x0 * fz) / m2, (tx - y0 * fz) / m2
-    s0, s1, twist = fx / m0, fy / m0, (tz - x0 * fy + y0 * fx) / (2 * m2)
+    # Resultants about the origin of the basis fields centred at (x0, y0): see
+    # surface_tractions. The pressure's tilt (cx, cy) solves m2 P (cx, cy) = (-(ty + x0 fz),
+    # tx - y0 fz), with P^-1 as in `contact_profile`.
+    bx, by = -(ty + x0 * fz) / m2, (tx - y0 * fz) / m2
+    c0, cx, cy = fz / m0, pyy * bx - pxy * by, pxx * by - pxy * bx
+    s0, s1, twist = fx / m0, fy / m0, (tz - x0 * fy + y0 * fx) / (m2 * (pxx + pyy))
     real = jnp.stack([s0 * profile, s1 * profile, c0 * profile])
     imaginary = jnp.stack([-twist * moment_y, twist * moment_x, cx * moment_x + cy * moment_y])
     shift = kx * (grid.X[0, 0] - x0) + ky * (grid.Y[0, 0] - y0)
