@@ -8,7 +8,7 @@ import optimistix as optx
 import pytest
 from scipy.optimize import least_squares
 
-from moirejax.inverse._solvers import Marquardt
+from moirejax.inverse._solvers import _covariance_shape, Marquardt
 
 
 NOISE = 0.02
@@ -94,3 +94,45 @@ def test_a_start_it_cannot_improve_ends_without_running_to_max_steps():
     assert sol.result == optx.RESULTS.successful
     assert int(sol.stats["num_steps"]) < 200
     assert np.all(np.abs(np.asarray(sol.value)) < 1e-2)
+
+
+def test_held_coordinates_keep_their_start_and_leave_the_others_solve_unchanged():
+    # A fifth unknown, an offset the data do contain: held at a value, the solve must be the
+    # exact optimum of the other four with the offset fixed there.
+    data = _data(1) + 0.1
+    held_value = 0.08
+
+    def with_offset(p, d):
+        return _decay(p[:4], TIMES) + p[4] - d
+
+    start = np.array([1.0, 0.5, 0.5, 1.8, held_value])
+    optimum, sigma = _exact(data - held_value, start[:4])
+    solver = Marquardt(noise=jnp.asarray(NOISE), tolerance=0.05, held=(4,))
+    sol = optx.least_squares(with_offset, solver, jnp.asarray(start), args=jnp.asarray(data), max_steps=100)
+    assert float(sol.value[4]) == held_value
+    assert np.all(np.abs(np.asarray(sol.value[:4]) - optimum) / sigma < 0.1)
+    # Freed, the offset is fitted and moves towards the data's.
+    free = optx.least_squares(
+        with_offset, Marquardt(noise=jnp.asarray(NOISE), tolerance=0.05), jnp.asarray(start), args=jnp.asarray(data)
+    )
+    assert abs(float(free.value[4]) - 0.1) < 0.01
+
+
+def test_covariance_of_unknowns_on_very_different_scales_in_single_precision():
+    """A frame's unknowns are informed over many decades (a contact centre in mm against a
+    shear the gratings barely see). In single precision the normal matrix's inverse must
+    keep the weakly seen direction's variance, not drop it as rounding: a dropped direction
+    reads as an axis known almost exactly."""
+    rng = np.random.default_rng(3)
+    basis = rng.standard_normal((500, 6))
+    # Columns informed from 1e-3 to 1e3, the two weakest strongly correlated.
+    basis[:, 1] = basis[:, 0] + 0.3 * basis[:, 1]
+    jacobian = basis * np.array([1e-3, 1e-3, 1.0, 10.0, 1e2, 1e3])
+    jtj = jacobian.T @ jacobian
+    exact = np.diag(np.linalg.inv(jtj))
+    single = np.diag(np.asarray(_covariance_shape(jnp.asarray(jtj, jnp.float32)), np.float64))
+    np.testing.assert_allclose(single, exact, rtol=1e-2)
+    # The plain pseudo-inverse in single precision loses the weak directions: what the
+    # scaling is for.
+    plain = np.diag(np.asarray(jnp.linalg.pinv(jnp.asarray(jtj, jnp.float32), hermitian=True), np.float64))
+    assert np.min(plain[:2] / exact[:2]) < 0.1

@@ -9,6 +9,7 @@ import numpy as np
 import optimistix as optx
 
 from .._conventions import WRENCH_SCALE
+from ._solvers import _covariance_shape
 from ._state import Estimate, LoadState, N_UNKNOWNS, Status, Track
 
 
@@ -83,7 +84,7 @@ def finish(
     prior_weight = jnp.maximum(noise, misfit)
     prior_jac = problem._prior_jacobian(y, prior_weight)
     jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
-    inverse = jnp.linalg.pinv(jtj, hermitian=True)
+    inverse = _covariance_shape(jtj)
     reweigh = -inverse @ (jacobian.T @ r_data + prior_jac.T @ problem._prior_residuals(y, prior_weight))
     pending = jnp.where(jnp.all(jnp.isfinite(reweigh)), reweigh, 0.0) + (0.0 if pending is None else pending)
     # Sandwich covariance for correlated noise: the estimate moves by A e for a data

@@ -955,7 +955,7 @@ class Inverter(eqx.Module):
 
         def reread(_):
             elongated = eqx.tree_at(lambda i: i.fitted_elongation, fit, jnp.asarray(True))
-            y1, r1, jacobian1, steps1, result1 = levenberg_marquardt(elongated, y, args, more_starts=False)
+            y1, r1, jacobian1, steps1, result1 = levenberg_marquardt(fit, y, args, more_starts=False, elongated=True)
             n_data = r.shape[0] - N_PRIORS
             round_cost, long_cost = jnp.sum(r[:n_data] ** 2), jnp.sum(r1[:n_data] ** 2)
             long_kept = jnp.isfinite(long_cost) & (long_cost < _SECOND_CONTACT_GAIN * round_cost)

@@ -32,7 +32,7 @@ from jaxtyping import Array, Float
 from .._conventions import NMM_PER_NM
 from ..physics import Contact
 from ._solvers import Marquardt
-from ._state import LoadState, N_PRIORS, N_UNKNOWNS
+from ._state import ELONGATION_COORDINATES, LoadState, N_PRIORS, N_UNKNOWNS
 
 
 if TYPE_CHECKING:
@@ -42,6 +42,8 @@ if TYPE_CHECKING:
 # The solvers' coordinates of two patches: the first patch's ten, then the second's wrench,
 # centre and log radius (it shares the frame's exposure).
 N_PAIR_UNKNOWNS = 2 * N_UNKNOWNS - 1
+# Both patches' elongation among them: the pair is solved with round patches.
+_PAIR_ELONGATION = (*ELONGATION_COORDINATES, *(N_UNKNOWNS + k for k in ELONGATION_COORDINATES))
 # A one-patch solution that leaves more than this share of the fringe phase's change
 # unexplained (`Estimate.misfit`) is tried with a second patch. Spherical contacts left
 # 0.1-0.3 % on the simulator's own unit and 0.9-4.4 % on the independent renderer's; two
@@ -243,7 +245,7 @@ def solve_pair(problem: "Inverter", y1, r1, args):
     starts = jnp.stack(
         [_matched_press(pair, first, observed, x, y, away, r1[:n_data]), _split(first, misfit_x, misfit_y)]
     )
-    solver = Marquardt(noise=args[1], tolerance=problem.tolerance)
+    solver = Marquardt(noise=args[1], tolerance=problem.tolerance, held=_PAIR_ELONGATION)
     # The starts are solved with both patches rounded, and the flatness is freed only from
     # the best of them, as in a cold solve of one patch (`solve_cold`): freed from the starts,
     # a twisted line contact ended at `max_steps` with twice the misfit and Fz 0.45 of its

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float
 
-from ._state import LoadState, N_PRIORS
+from ._state import ELONGATION_COORDINATES, LoadState, N_PRIORS
 
 
 if TYPE_CHECKING:
@@ -97,17 +97,26 @@ class Marquardt(optx.AbstractLeastSquaresSolver):
     renderer, with the same estimates, but sent a sheared 6 N grasp press into a wrong
     basin that this path avoids. A rejected step costs one evaluation of the residual;
     the Jacobian is taken only where a step is accepted.
+
+    `held` names coordinates the solve keeps at their start: a round patch's elongation, which
+    the model then does not see. They take no step and no column of the Jacobian, so the
+    solve is the one of the remaining unknowns alone, in the same arithmetic and at their
+    cost.
     """
 
     noise: Float[Array, ""]
     tolerance: float | Float[Array, ""] = 0.05
+    held: tuple[int, ...] = eqx.field(static=True, default=())
     # Unused (the stopping rule is `tolerance`); optimistix's solvers declare them.
     rtol: float = 0.0
     atol: float = 0.0
     norm: Callable = optx.max_norm
 
+    def _free(self, y):
+        return tuple(k for k in range(y.shape[0]) if k not in self.held)
+
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        residual, jacobian = _residual_and_jacobian(fn, y, args)
+        residual, jacobian = _residual_and_jacobian(fn, y, args, self._free(y))
         dy, sigma = _gauss_newton(jacobian.T @ jacobian, jacobian.T @ residual, self.noise)
         converged = _largest_move(dy, sigma) < self.tolerance
         return _MarquardtState(residual, jacobian, sigma, jnp.asarray(1.0, residual.dtype), converged)
@@ -115,8 +124,9 @@ class Marquardt(optx.AbstractLeastSquaresSolver):
     def step(self, fn, y, args, options, state, tags):
         jtj = state.jacobian.T @ state.jacobian
         gradient = state.jacobian.T @ state.residual
-        dy = -jnp.linalg.solve(jtj + state.damping * jnp.eye(y.shape[0], dtype=y.dtype), gradient)
-        y_new = y + dy
+        free = self._free(y)
+        dy = -jnp.linalg.solve(jtj + state.damping * jnp.eye(len(free), dtype=y.dtype), gradient)
+        y_new = y.at[jnp.asarray(free)].add(dy)
         residual_new, aux = fn(y_new, args)
         cost = jnp.sum(state.residual**2)
         cost_new = jnp.sum(residual_new**2)
@@ -126,7 +136,7 @@ class Marquardt(optx.AbstractLeastSquaresSolver):
         accept = jnp.isfinite(cost_new) & (predicted > 0) & (gain >= 0.01)
         residual, jacobian = jax.lax.cond(
             accept,
-            lambda: _residual_and_jacobian(fn, y_new, args),
+            lambda: _residual_and_jacobian(fn, y_new, args, free),
             lambda: (state.residual, state.jacobian),
         )
         y = jnp.where(accept, y_new, y)
@@ -144,9 +154,10 @@ class Marquardt(optx.AbstractLeastSquaresSolver):
         return y, aux, {}
 
 
-def _residual_and_jacobian(fn, y, args):
+def _residual_and_jacobian(fn, y, args, free):
+    # The Jacobian's columns of the free coordinates `free` only.
     residual, linear = jax.linearize(lambda v: fn(v, args)[0], y)
-    return residual, jax.vmap(linear, out_axes=1)(jnp.eye(y.shape[0], dtype=y.dtype))
+    return residual, jax.vmap(linear, out_axes=1)(jnp.eye(y.shape[0], dtype=y.dtype)[jnp.asarray(free)])
 
 
 def chord(problem: "Inverter", y, r, jacobian, args):
@@ -220,9 +231,11 @@ def levenberg_marquardt(
     more_starts: bool | Bool[Array, ""] = True,
     when_unexplained: bool = True,
     polish: bool | Bool[Array, ""] = True,
+    elongated: bool = False,
 ):
     """Levenberg–Marquardt from `y0`, then again from its solution with the shear
-    forces zeroed; the lower cost wins.
+    forces zeroed; the lower cost wins. The patch is round (its elongation held at `y0`'s
+    and not modelled) unless `elongated`.
 
     From a cold start the contact and normal load are wrong at first, and the shear can
     absorb part of that error and settle in a wrong basin (on one unit's held-out
@@ -256,6 +269,8 @@ def levenberg_marquardt(
     with `polish` the best is then solved to the inverter's `tolerance`. (A refinement
     whose answer only starts the next one needs no polish.)
     """
+    problem = eqx.tree_at(lambda i: i.fitted_elongation, problem, jnp.asarray(elongated))
+    held = () if elongated else ELONGATION_COORDINATES
     zero_cost = jnp.sum(problem._zero_residuals(args[0]) ** 2)
     fringe_centre = problem.fringe_change_centre(args[0])
     first = LoadState.from_vector(y0)
@@ -292,7 +307,7 @@ def levenberg_marquardt(
         )
         start = jnp.where(polishing, y, start)
         tolerance = jnp.where(polishing, problem.tolerance, max(problem.tolerance, _SEARCH_TOLERANCE))
-        solver = Marquardt(noise=args[1], tolerance=tolerance)
+        solver = Marquardt(noise=args[1], tolerance=tolerance, held=held)
         sol = optx.least_squares(problem.residuals, solver, start, args=args, max_steps=problem.max_steps, throw=False)
         new_cost = jnp.sum(problem.residuals(sol.value, args) ** 2)
         new_cost = jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf)

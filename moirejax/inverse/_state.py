@@ -36,6 +36,9 @@ N_UNKNOWNS = 13
 # the elongation (2), the wrench (6) and the exposure (1); the exposure's comes last.
 N_PRIORS = 13
 WRENCH_COORDINATES = slice(0, 6)
+# Where the elongation (`stretch_x`, `stretch_xy`) sits among the solvers' coordinates: a solve
+# that keeps the patch round holds these.
+ELONGATION_COORDINATES = (10, 11)
 
 
 class LoadState(eqx.Module):
