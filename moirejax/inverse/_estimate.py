@@ -84,8 +84,14 @@ def finish(
     prior_weight = jnp.maximum(noise, misfit)
     prior_jac = problem._prior_jacobian(y, prior_weight)
     jtj = jacobian.T @ jacobian + prior_jac.T @ prior_jac
+    # The step drops what single precision cannot resolve (a plain pseudo-inverse): along a
+    # direction the data barely see, a full Gauss-Newton step leaves the region where the
+    # linearisation holds. The covariance keeps every direction (`_covariance_shape`):
+    # dropped, a barely seen axis would read as known almost exactly.
+    reweigh = -jnp.linalg.pinv(jtj, hermitian=True) @ (
+        jacobian.T @ r_data + prior_jac.T @ problem._prior_residuals(y, prior_weight)
+    )
     inverse = _covariance_shape(jtj)
-    reweigh = -inverse @ (jacobian.T @ r_data + prior_jac.T @ problem._prior_residuals(y, prior_weight))
     pending = jnp.where(jnp.all(jnp.isfinite(reweigh)), reweigh, 0.0) + (0.0 if pending is None else pending)
     # Sandwich covariance for correlated noise: the estimate moves by A e for a data
     # noise e, A = (J^T J)^-1 J_data^T; E[e e^T] comes from the stored unit-noise draws.
