@@ -409,8 +409,9 @@ class Inverter(eqx.Module):
     def _modelled_contact(self, contact: Contact) -> Contact:
         # A solve that holds the contact's flatness (the first stages of a cold solve,
         # `solve_cold`; the starts of a two-patch solve) sees a sphere's pressure, and one
-        # that holds its elongation (all but `Inverter.second_contact`'s) a round patch:
-        # their coordinates keep their start, pulled only by their priors.
+        # that holds its elongation (all but `Inverter.second_contact`'s) a round patch. The
+        # held flatness keeps its start, pulled only by its prior; the held elongation takes
+        # no step at all (`Marquardt.held`).
         return eqx.tree_at(
             lambda c: (c.flatness, c.stretch_x, c.stretch_xy),
             contact,

@@ -39,8 +39,8 @@ if TYPE_CHECKING:
     from ._inversion import Inverter
 
 
-# The solvers' coordinates of two patches: the first patch's ten, then the second's wrench,
-# centre and log radius (it shares the frame's exposure).
+# The solvers' coordinates of two patches: the first patch's thirteen, then the second's
+# twelve (all but the exposure: it shares the frame's).
 N_PAIR_UNKNOWNS = 2 * N_UNKNOWNS - 1
 # Both patches' elongation among them: the pair is solved with round patches.
 _PAIR_ELONGATION = (*ELONGATION_COORDINATES, *(N_UNKNOWNS + k for k in ELONGATION_COORDINATES))
