@@ -8,6 +8,7 @@ import optimistix as optx
 import pytest
 from scipy.optimize import least_squares
 
+from moirejax.inverse._estimate import reweighing_step
 from moirejax.inverse._solvers import _covariance_shape, Marquardt
 
 
@@ -136,3 +137,26 @@ def test_covariance_of_unknowns_on_very_different_scales_in_single_precision():
     # scaling is for.
     plain = np.diag(np.asarray(jnp.linalg.pinv(jnp.asarray(jtj, jnp.float32), hermitian=True), np.float64))
     assert np.min(plain[:2] / exact[:2]) < 0.1
+
+
+def test_the_reweighing_step_stays_off_directions_single_precision_cannot_resolve():
+    """The reweighed priors' step at the end of a solve is the opposite choice from the
+    covariance's: along the weakly seen pair of the system above, a residual the model
+    does not explain would pull the exact Gauss-Newton step far out of the region where the
+    linearisation holds. In single precision the step must leave that pair nearly where it
+    is, and still take the well-seen unknowns' step."""
+    rng = np.random.default_rng(3)
+    basis = rng.standard_normal((500, 6))
+    basis[:, 1] = basis[:, 0] + 0.3 * basis[:, 1]
+    jacobian = basis * np.array([1e-3, 1e-3, 1.0, 10.0, 1e2, 1e3])
+    misfit = rng.standard_normal(500)
+    jtj, gradient = jacobian.T @ jacobian, jacobian.T @ misfit
+    exact = -np.linalg.solve(jtj, gradient)
+    step = np.asarray(reweighing_step(jnp.asarray(jtj, jnp.float32), jnp.asarray(gradient, jnp.float32)), np.float64)
+    assert np.max(np.abs(step[:2] / exact[:2])) < 0.1
+    # The three best-seen unknowns take the exact step, to what the dropped directions they
+    # correlate with shift it.
+    np.testing.assert_allclose(step[3:], exact[3:], rtol=0.2)
+    # The unit-diagonal inverse, right for the covariance, takes the whole weak step.
+    scaled = np.asarray(-_covariance_shape(jnp.asarray(jtj, jnp.float32)) @ jnp.asarray(gradient, jnp.float32))
+    assert np.min(np.abs(scaled[:2] / exact[:2])) > 0.5

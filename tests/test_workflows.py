@@ -213,18 +213,26 @@ def test_import_cli_round_trip(tmp_path, datasets, capsys):
 
 
 @pytest.mark.usefixtures("float32", "moire_bands_only")
+@pytest.mark.usefixtures("float32", "moire_bands_only")
 def test_invert_cli_writes_status_rows(tmp_path, datasets):
     frames = tmp_path / "frames"
     export_recording(Dataset(datasets / "test"), frames, tmp_path / "ft.csv")
     (frames / "zz_corrupt.png").write_bytes(b"not a png")
     out = tmp_path / "w.csv"
-    assert (
-        main(["invert", "--device", str(datasets / "mid.json"), "--data", str(frames), "--out", str(out), "--quiet"])
-        == 0
-    )
+    # The unit's own no-contact frame as the reference, as a user records one.
+    truth = Dataset(datasets / "test")
+    rest = next(name for name, touching in zip(truth.frame_names, truth.contact) if not touching)
+    command = ["invert", "--device", str(datasets / "mid.json"), "--data", str(frames), "--out", str(out)]
+    assert main([*command, "--reference", str(frames / rest), "--quiet"]) == 0
     rows = out.read_text().splitlines()
     assert rows[0].startswith("frame,fx,fy,fz,tx,ty,tz,sigma_fx")
     assert rows[-1].startswith("zz_corrupt.png") and "unreadable" in rows[-1]
+    # The nominal design read on a unit that deviates from it: every press is seen, and
+    # its normal force read to within a fifth of a newton.
+    read = {row["frame"]: row for row in csv.DictReader(rows)}
+    for name, touching, wrench in zip(truth.frame_names, truth.contact, truth.wrenches):
+        assert (read[name]["status"] == "no_contact") != bool(touching), (name, read[name]["status"])
+        assert abs(float(read[name]["fz"]) - float(wrench[2])) < 0.2, (name, read[name]["fz"], wrench[2])
     # Every row, parsed, is what data_schema/wrench_csv.schema.json describes.
     with open(out, newline="") as f:
         for row in csv.DictReader(f):

@@ -295,11 +295,11 @@ def levenberg_marquardt(
         return (k < 2) | (more & (k < 2 + fallbacks.shape[0]))
 
     def cond(carry):
-        k, _, _, _, _, more, polished = carry
+        k, _, _, _, _, _, more, polished = carry
         return searching(k, more) | ~polished
 
     def body(carry):
-        k, y, cost, result, steps, more, polished = carry
+        k, y, residual, cost, result, steps, more, polished = carry
         polishing = ~searching(k, more)
         no_shear = LoadState.from_vector(y).with_shear(0.0, 0.0).vector()
         start = jnp.where(
@@ -309,10 +309,13 @@ def levenberg_marquardt(
         tolerance = jnp.where(polishing, problem.tolerance, max(problem.tolerance, _SEARCH_TOLERANCE))
         solver = Marquardt(noise=args[1], tolerance=tolerance, held=held)
         sol = optx.least_squares(problem.residuals, solver, start, args=args, max_steps=problem.max_steps, throw=False)
-        new_cost = jnp.sum(problem.residuals(sol.value, args) ** 2)
+        # The solver's state holds the residual at its solution: no model run to cost it.
+        new_residual = sol.state.residual
+        new_cost = jnp.sum(new_residual**2)
         new_cost = jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf)
         better = (k == 0) | (new_cost < cost) | (polishing & (new_cost <= cost))
         y = jnp.where(better, sol.value, y)
+        residual = jnp.where(better, new_residual, residual)
         cost = jnp.where(better, new_cost, cost)
         result = optx.RESULTS.where(better, sol.result, result)
         steps = steps + jnp.asarray(sol.stats["num_steps"], jnp.int32)
@@ -320,19 +323,20 @@ def levenberg_marquardt(
         # the better one explains the frame poorly.
         poor = (cost > _UNEXPLAINED * zero_cost) & when_unexplained
         more = jnp.where(k == 1, more_starts & ((result != optx.RESULTS.successful) | poor), more)
-        return k + 1, y, cost, result, steps, more, polished | polishing
+        return k + 1, y, residual, cost, result, steps, more, polished | polishing
 
     init = (
         jnp.asarray(0, jnp.int32),
         y0,
+        jnp.zeros(jax.eval_shape(problem.residuals, y0, args).shape, y0.dtype),
         jnp.asarray(jnp.inf, y0.dtype),
         optx.RESULTS.successful,
         jnp.asarray(0, jnp.int32),
         jnp.asarray(False),
         ~jnp.asarray(polish),
     )
-    _, y, _, result, steps, _, _ = jax.lax.while_loop(cond, body, init)
-    return y, problem.residuals(y, args), problem._data_jacobian(y, args[0]), steps, result
+    _, y, residual, _, result, steps, _, _ = jax.lax.while_loop(cond, body, init)
+    return y, residual, problem._data_jacobian(y, args[0]), steps, result
 
 
 def best_start(candidates, residuals):
