@@ -119,16 +119,21 @@ def test_held_coordinates_keep_their_start_and_leave_the_others_solve_unchanged(
     assert abs(float(free.value[4]) - 0.1) < 0.01
 
 
+def _weakly_seen_system():
+    """A Jacobian whose columns are informed from 1e-3 to 1e3, the two weakest strongly
+    correlated, and a residual it does not explain."""
+    rng = np.random.default_rng(3)
+    basis = rng.standard_normal((500, 6))
+    basis[:, 1] = basis[:, 0] + 0.3 * basis[:, 1]
+    return basis * np.array([1e-3, 1e-3, 1.0, 10.0, 1e2, 1e3]), rng.standard_normal(500)
+
+
 def test_covariance_of_unknowns_on_very_different_scales_in_single_precision():
     """A frame's unknowns are informed over many decades (a contact centre in mm against a
     shear the gratings barely see). In single precision the normal matrix's inverse must
     keep the weakly seen direction's variance, not drop it as rounding: a dropped direction
     reads as an axis known almost exactly."""
-    rng = np.random.default_rng(3)
-    basis = rng.standard_normal((500, 6))
-    # Columns informed from 1e-3 to 1e3, the two weakest strongly correlated.
-    basis[:, 1] = basis[:, 0] + 0.3 * basis[:, 1]
-    jacobian = basis * np.array([1e-3, 1e-3, 1.0, 10.0, 1e2, 1e3])
+    jacobian, _ = _weakly_seen_system()
     jtj = jacobian.T @ jacobian
     exact = np.diag(np.linalg.inv(jtj))
     single = np.diag(np.asarray(_covariance_shape(jnp.asarray(jtj, jnp.float32)), np.float64))
@@ -145,11 +150,7 @@ def test_the_reweighing_step_stays_off_directions_single_precision_cannot_resolv
     does not explain would pull the exact Gauss-Newton step far out of the region where the
     linearisation holds. In single precision the step must leave that pair nearly where it
     is, and still take the well-seen unknowns' step."""
-    rng = np.random.default_rng(3)
-    basis = rng.standard_normal((500, 6))
-    basis[:, 1] = basis[:, 0] + 0.3 * basis[:, 1]
-    jacobian = basis * np.array([1e-3, 1e-3, 1.0, 10.0, 1e2, 1e3])
-    misfit = rng.standard_normal(500)
+    jacobian, misfit = _weakly_seen_system()
     jtj, gradient = jacobian.T @ jacobian, jacobian.T @ misfit
     exact = -np.linalg.solve(jtj, gradient)
     step = np.asarray(reweighing_step(jnp.asarray(jtj, jnp.float32), jnp.asarray(gradient, jnp.float32)), np.float64)
