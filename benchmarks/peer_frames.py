@@ -1,7 +1,7 @@
 """Accuracy on frames moirejax did not render: the independent ray-casting renderer.
 
     python benchmarks/peer_frames.py --data DIR [--json]
-    python benchmarks/peer_frames.py --render 200 --seed 3 [--json]
+    python benchmarks/peer_frames.py --render 200 --seed 3 [--supersample 12] [--json]
     python benchmarks/peer_frames.py --data DIR --calibrate 200 [--calibration-seed 11] [--json]
 
 `--data` reads a folder written by the peer renderer (`frames/*.png`, `wrench.csv` with a
@@ -48,9 +48,24 @@ def read_peer(folder: Path):
     return frames, wrench, contact
 
 
-def render_peer(n: int, seed: int) -> Path:
+def render_peer(n: int, seed: int, supersample: int | None = None) -> Path:
+    """`n` mixed loads of the peer renderer in a new folder; with `supersample`, its pixels
+    sampled at that many points a side instead of its own 4 (its command line has no option
+    for it, so its device's default is replaced before its `main` runs)."""
     folder = Path(tempfile.mkdtemp(prefix="peer-"))
-    subprocess.run([sys.executable, str(PEER), str(folder), "--n", str(n), "--seed", str(seed)], check=True)
+    argv = [str(PEER), str(folder), "--n", str(n), "--seed", str(seed)]
+    if supersample is None:
+        subprocess.run([sys.executable, *argv], check=True)
+        return folder
+    script = (
+        "import functools, sys\n"
+        f"sys.path.insert(0, {str(PEER.parent)!r})\n"
+        "import raycast_sensor as peer\n"
+        f"peer.Device = functools.partial(peer.Device, supersample={int(supersample)})\n"
+        f"sys.argv = {argv!r}\n"
+        "peer.main()\n"
+    )
+    subprocess.run([sys.executable, "-c", script], check=True)
     return folder
 
 
@@ -86,6 +101,12 @@ def main():
     parser.add_argument("--data", type=Path, help="a folder written by the peer renderer")
     parser.add_argument("--render", type=int, default=0, help="render this many loaded frames with the peer first")
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument(
+        "--supersample",
+        type=int,
+        help="with --render: sample each pixel at this many points a side (the renderer's own is 4, which aliases"
+        " its gratings' harmonics into the fringe bands; 12 or more does not, at about 30 s a frame)",
+    )
     parser.add_argument("--json", action="store_true")
     parser.add_argument(
         "--per-frame", type=Path, help="also write each frame's truth, estimate, sigma and status (CSV)"
@@ -100,7 +121,7 @@ def main():
     if args.data is None:
         if not args.render or not PEER.exists():
             parser.error(f"give --data DIR, or --render N with the peer renderer at {PEER}")
-        args.data = render_peer(args.render, args.seed)
+        args.data = render_peer(args.render, args.seed, args.supersample)
     frames, truth, contact = read_peer(args.data)
     device = mj.preset("mid", layout="lines", duty1=0.5, duty2=0.5)
     start = time.perf_counter()
