@@ -10,7 +10,7 @@ import pytest
 import moirejax as mj
 from moirejax import Contact, Indenter, invert, Inverter, LoadState, Status
 from moirejax.inverse._invert_io import _rows, CSV_HEADER
-from moirejax.inverse._second_contact import both_press, pair_states
+from moirejax.inverse._second_contact import _pair_vector, both_press, pair_states
 
 
 pytestmark = pytest.mark.xdist_group("second_contact")
@@ -54,14 +54,13 @@ def test_a_patch_that_pulls_is_no_second_contact():
     # A push-pull pair can take most of a one-patch misfit away (an independent renderer's
     # aliasing, on a centred press, was "explained" by 1.1 N and -2.0 N), and its sum then
     # reads a press as a pull; contacts only push.
-    press = lambda fz, x0: LoadState.from_load(
-        jnp.array([0.0, 0.0, fz, 0.0, -x0 * fz * 1e-3, 0.0]), Contact(x0, 0.0, 3.0)
-    )  # noqa: E731
-    pair = lambda a, b: jnp.concatenate([a.vector(), b.vector()[:-1]])  # noqa: E731
-    assert bool(both_press(pair(press(0.7, -4.0), press(0.35, 4.0))))
-    assert not bool(both_press(pair(press(1.1, -1.0), press(-2.0, 1.0))))
-    assert not bool(both_press(pair(press(-0.2, -4.0), press(0.9, 4.0))))
-    first, second = pair_states(pair(press(0.7, -4.0), press(0.35, 4.0)))
+    def press(fz, x0):
+        return LoadState.from_load(jnp.array([0.0, 0.0, fz, 0.0, -x0 * fz * 1e-3, 0.0]), Contact(x0, 0.0, 3.0))
+
+    assert bool(both_press(_pair_vector(press(0.7, -4.0), press(0.35, 4.0))))
+    assert not bool(both_press(_pair_vector(press(1.1, -1.0), press(-2.0, 1.0))))
+    assert not bool(both_press(_pair_vector(press(-0.2, -4.0), press(0.9, 4.0))))
+    first, second = pair_states(_pair_vector(press(0.7, -4.0), press(0.35, 4.0)))
     np.testing.assert_allclose(np.asarray(first.wrench[2]), 0.7, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(second.wrench[2]), 0.35, rtol=1e-6)
 
