@@ -31,6 +31,14 @@ _SEARCH_TOLERANCE = 0.5
 # its range) to this power: a grasp's friction carries more shear (`grasp_limits`: 0.2 N at
 # 1.2 N, about 1 N at 10 N).
 _HEAVY_SHEAR = 0.75
+# A start twisted by more than this share of Tz's range also tries the patch wider by
+# `_WIDER_PATCH`, and half the twist: a twisted press can settle on a patch too small
+# carrying too much twist (on the independent renderer, 0.78 N with 7.5 mN*m on a 3.8 mm
+# patch read as 0.65 N with 9.9 mN*m on 3.1 mm, 8.5 % of the phase change left; either start
+# finds the right basin, 0.4 %). Below it the trade has too little twist to work with, and
+# the two starts would only add to the cost of every poorly explained frame.
+_TWISTED = 0.5
+_WIDER_PATCH = 1.25
 
 
 def _gauss_newton(jtj, gradient, noise):
@@ -248,19 +256,20 @@ def levenberg_marquardt(
     or when the better one leaves more than `_UNEXPLAINED` of the zero-load residual
     unexplained, six more starts in turn: the contact where the fringes changed most
     ([`Inverter.fringe_change_centre`][moirejax.Inverter.fringe_change_centre]), the contact halfway to the centre, and each
-    shear direction at half its range (more above the calibrated normal force, `_HEAVY_SHEAR`). The second test catches a wrong basin the solver
+    shear direction at half its range (more above the calibrated normal force, `_HEAVY_SHEAR`);
+    from a twisted start also a wider patch and half the twist (`_TWISTED`). The second test catches a wrong basin the solver
     calls converged: on 200 mixed noise-free and noisy loads, correct fits left at most
     0.14% unexplained and two wrong ones (Fx 116% and Fy 35% of range off) 1.3-1.8%.
     A faint contact in noise also leaves much unexplained and pays for the extra starts.
 
-    `when_unexplained=False` runs the six only when neither of the first two converged: for
+    `when_unexplained=False` runs them only when neither of the first two converged: for
     a first solve whose answer a refinement on another residual replaces (see
     [`solve_cold`][]).
 
     `more_starts=False` (streams) stops after the first two starts. On a `high`-fidelity
     recording of an uncalibrated unit with illumination drift, right fits leave 0.3-3%
     unexplained (6% without contact) and faint presses often end at `max_steps`, so the
-    six starts ran at most cold solves and took them from 0.7 to 2-3.5 s, which a live
+    further starts ran at most cold solves and took them from 0.7 to 2-3.5 s, which a live
     stream pays in dropped frames at each contact onset. A stream's cold start is usually
     a light press at contact onset, the stream follows the load from there, and a frame
     that did not converge is retried cold on the next frame.
@@ -285,14 +294,19 @@ def levenberg_marquardt(
             first.with_shear(-reach, first.scaled_wrench[1]).vector(),
             first.with_shear(first.scaled_wrench[0], reach).vector(),
             first.with_shear(first.scaled_wrench[0], -reach).vector(),
+            first.with_radius_scaled(_WIDER_PATCH).vector(),
+            first.with_twist_scaled(0.5).vector(),
         ]
     )
 
     # One solver inside a loop over the starts, not one per start: each traced solve
     # is a copy of the whole model in the compiled program, and compilation was most of
     # a first frame's cost (35 s with three copies).
+    twisted = jnp.abs(first.scaled_wrench[5]) > _TWISTED
+    tried = jnp.where(twisted, fallbacks.shape[0], fallbacks.shape[0] - 2)
+
     def searching(k, more):
-        return (k < 2) | (more & (k < 2 + fallbacks.shape[0]))
+        return (k < 2) | (more & (k < 2 + tried))
 
     def cond(carry):
         k, _, _, _, _, _, more, polished = carry
@@ -355,13 +369,13 @@ def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array,
     ([`Inverter.contact_light_scale`][moirejax.Inverter.contact_light_scale]). Returns
     `(y, r, jacobian, steps, result)`, `r` and `jacobian` those of `problem._fit`.
 
-    The six further starts of a poorly explained frame run in the last refinement, whose
+    The further starts of a poorly explained frame run in the last refinement, whose
     answer is the estimate, not in the first solve: on a unit the model does not describe
     exactly, the full residual (fringe amplitude and brightness too) leaves every frame
     poorly explained (all 40 loads of the independent renderer's set), so the first
     solve's further starts ran on every frame, for a large share of its cost, and moved no
     estimate there by more than 0.02% of its range. When neither of the first solve's two
-    starts converges, the six run there too.
+    starts converges, they run there too.
 
     Refining with the fitted light straight from the full residual's solution can end in
     a wrong basin: on a line-grating unit whose fringes see the normal force weakly, the

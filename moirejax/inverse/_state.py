@@ -148,6 +148,14 @@ class LoadState(eqx.Module):
         shear = jnp.stack([jnp.asarray(fx, self.scaled_wrench.dtype), jnp.asarray(fy, self.scaled_wrench.dtype)])
         return eqx.tree_at(lambda s: s.scaled_wrench, self, self.scaled_wrench.at[..., :2].set(shear))
 
+    def with_twist_scaled(self, factor: float) -> "LoadState":
+        """This state with its torque about the normal (Tz) multiplied by `factor`."""
+        return eqx.tree_at(lambda s: s.scaled_wrench, self, self.scaled_wrench.at[..., 5].multiply(factor))
+
+    def with_radius_scaled(self, factor: float) -> "LoadState":
+        """This state with its contact radius multiplied by `factor`."""
+        return eqx.tree_at(lambda s: s.log_radius, self, self.log_radius + math.log(factor))
+
     def with_contact_at(self, x0: Float[Array, ""], y0: Float[Array, ""]) -> "LoadState":
         """This state with the contact centred at `(x0, y0)` mm."""
         return eqx.tree_at(
