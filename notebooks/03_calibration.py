@@ -68,7 +68,7 @@ N_CALIBRATION = 16 if SMOKE else 300  # calibration frames (paper protocol), a f
 N_HELDOUT = 8 if SMOKE else 60  # held-out frames (mixed loads); the first two are contact-free
 RECIPE = load_recipe("unit")
 if SMOKE:
-    RECIPE = RECIPE.replace(rounds=1, parameter_frames=8, parameter_steps=3, latent_steps=6)
+    RECIPE = RECIPE.replace(rounds=1, parameter_frames=8, parameter_steps=4, latent_steps=8)
 BASELINE_SIZES = (10,) if SMOKE else (20, 100, 200)
 
 work = Path(tempfile.mkdtemp(prefix="moirejax-03-"))  # datasets, device files and report PNGs

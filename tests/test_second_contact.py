@@ -114,8 +114,9 @@ def test_two_fingertips_are_read_with_two_patches(mid, simulator, inverter):
     row = dict(zip(CSV_HEADER, _rows(["f"], jax.tree.map(lambda x: x[None], estimate), [None])[0]))
     assert row["contacts"] == 1 and np.isnan(row["second_fz"])
     assert np.all(np.abs((np.asarray(estimate.wrench) - truth) / SCALE) < 0.02)
-    # A round patch explains it: its elongation is never freed.
-    assert float(estimate.contact.aspect_ratio) == 1.0
+    # A round patch explains it: its elongation is never freed (only rounding in the
+    # estimate's last step, which moves unknowns the data do not see towards their priors).
+    assert float(estimate.contact.aspect_ratio) == pytest.approx(1.0, abs=1e-9)
 
 
 def test_an_edge_is_read_with_one_elongated_patch(mid, simulator, inverter):

@@ -292,6 +292,7 @@ def test_example_unit_in_the_package_loads_with_its_head():
 
 
 @pytest.mark.usefixtures("float32", "moire_bands_only")
+@pytest.mark.usefixtures("float32", "moire_bands_only")
 def test_demo_runs_end_to_end_in_smoke_mode(tmp_path, capsys):
     from moirejax.cli._demo import run_demo
 

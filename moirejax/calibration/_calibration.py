@@ -247,8 +247,10 @@ def _parameter_solve(
 
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-7, linear_solver=lx.QR())
     sol = optx.least_squares(residuals, solver, start, args=data, max_steps=steps, throw=False)
-    r = data_residuals(sol.value, data)
-    J = jax.jacfwd(residuals)(sol.value, data)
+    # The residual and its Jacobian at the solution from one traced model.
+    full, linear = jax.linearize(lambda sub: residuals(sub, data), sol.value)
+    J = jax.vmap(linear, out_axes=1)(jnp.eye(sol.value.size, dtype=sol.value.dtype))
+    r = full[: full.size - sol.value.size]
     dof = (jnp.sum(r != 0) - sol.value.size - 3 * latents.x0.shape[0]).astype(r.dtype)
     covariance = jnp.linalg.pinv(J.T @ J, hermitian=True) * jnp.sum(r**2) / dof
     return theta.at[index].set(sol.value), covariance, jnp.sum(r**2)

@@ -46,7 +46,7 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
     )
     plot_design_maps(out_dir / "design_maps.png")
 
-    n_cal, n_test = (24, 8) if smoke else (120, 40)
+    n_cal, n_test = (16, 8) if smoke else (120, 40)
     # The smoke run keeps Mid's 32 mm field on a 256 x 256 px camera.
     nominal = preset("mid", height=256, width=256, px_per_mm=8.0) if smoke else preset("mid")
     save_device(out_dir / "mid.json", nominal)
@@ -59,12 +59,15 @@ def run_demo(out: str = "moirejax-demo", *, smoke: bool = False) -> int:
 
     print("\nbefore calibration (nominal design, the unit's own reference frame):")
     before = evaluate(out_dir / "mid.json", out_dir / "heldout", out_dir / "before")
-    recipe = load_recipe("unit").replace(rounds=1 if smoke else 2, parameter_frames=16 if smoke else 32)
+    recipe = load_recipe("unit").replace(rounds=2, parameter_frames=32)
+    if smoke:
+        # The smoke sizes of notebook 03, whose compiled programs a test run then shares.
+        recipe = recipe.replace(rounds=1, parameter_frames=8, parameter_steps=4, latent_steps=8)
     summary = calibrate(
         out_dir / "mid.json", out_dir / "calibration", out_dir / "fit.json", recipe=recipe, baseline_sizes=()
     )
     after = evaluate(out_dir / "fit.json", out_dir / "heldout", out_dir / "after")
-    ridge = heldout_ridge_r2(out_dir / "calibration", out_dir / "heldout", (20, n_cal))
+    ridge = heldout_ridge_r2(out_dir / "calibration", out_dir / "heldout", (8 if smoke else 20, n_cal))
     # Speed once compiled: the held-out loads are unrelated to each other, so every frame is
     # a cold solve; a stream (warm start from the last frame) is several times faster.
     heldout = Dataset(out_dir / "heldout")

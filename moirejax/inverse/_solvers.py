@@ -13,7 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ._state import ELONGATION_COORDINATES, LoadState, N_PRIORS
 
@@ -135,18 +135,18 @@ class Marquardt(optx.AbstractLeastSquaresSolver):
         free = self._free(y)
         dy = -jnp.linalg.solve(jtj + state.damping * jnp.eye(len(free), dtype=y.dtype), gradient)
         y_new = y.at[jnp.asarray(free)].add(dy)
-        residual_new, aux = fn(y_new, args)
+        # One evaluation of the model at the trial point, its Jacobian taken only if the
+        # step is accepted: a second traced model for the trial's cost alone made the
+        # compiled program larger.
+        residual_new, linear, aux = jax.linearize(lambda v: fn(v, args), y_new, has_aux=True)
         cost = jnp.sum(state.residual**2)
         cost_new = jnp.sum(residual_new**2)
         # The reduction the linear model predicts, and the share of it the step achieved.
         predicted = cost - jnp.sum((state.residual + state.jacobian @ dy) ** 2)
         gain = (cost - cost_new) / jnp.where(predicted > 0, predicted, jnp.inf)
         accept = jnp.isfinite(cost_new) & (predicted > 0) & (gain >= 0.01)
-        residual, jacobian = jax.lax.cond(
-            accept,
-            lambda: _residual_and_jacobian(fn, y_new, args, free),
-            lambda: (state.residual, state.jacobian),
-        )
+        residual = jnp.where(accept, residual_new, state.residual)
+        jacobian = jax.lax.cond(accept, lambda: _columns(linear, y, free), lambda: state.jacobian)
         y = jnp.where(accept, y_new, y)
         damping = state.damping * jnp.where(accept, jnp.where(gain > 0.99, 1 / 3.5, 1.0), 4.0)
         # A rejected step is measured in the standard errors of the point it left.
@@ -163,9 +163,13 @@ class Marquardt(optx.AbstractLeastSquaresSolver):
 
 
 def _residual_and_jacobian(fn, y, args, free):
-    # The Jacobian's columns of the free coordinates `free` only.
     residual, linear = jax.linearize(lambda v: fn(v, args)[0], y)
-    return residual, jax.vmap(linear, out_axes=1)(jnp.eye(y.shape[0], dtype=y.dtype)[jnp.asarray(free)])
+    return residual, _columns(linear, y, free)
+
+
+def _columns(linear, y, free):
+    # The Jacobian's columns of the free coordinates `free` only.
+    return jax.vmap(linear, out_axes=1)(jnp.eye(y.shape[0], dtype=y.dtype)[jnp.asarray(free)])
 
 
 def chord(problem: "Inverter", y, r, jacobian, args):
@@ -237,7 +241,7 @@ def levenberg_marquardt(
     args,
     *,
     more_starts: bool | Bool[Array, ""] = True,
-    when_unexplained: bool = True,
+    when_unexplained: bool | Bool[Array, ""] = True,
     polish: bool | Bool[Array, ""] = True,
     elongated: bool = False,
 ):
@@ -309,11 +313,11 @@ def levenberg_marquardt(
         return (k < 2) | (more & (k < 2 + tried))
 
     def cond(carry):
-        k, _, _, _, _, _, more, polished = carry
+        k, *_, more, polished = carry
         return searching(k, more) | ~polished
 
     def body(carry):
-        k, y, residual, cost, result, steps, more, polished = carry
+        k, y, residual, jacobian, cost, result, steps, more, polished = carry
         polishing = ~searching(k, more)
         no_shear = LoadState.from_vector(y).with_shear(0.0, 0.0).vector()
         start = jnp.where(
@@ -323,13 +327,15 @@ def levenberg_marquardt(
         tolerance = jnp.where(polishing, problem.tolerance, max(problem.tolerance, _SEARCH_TOLERANCE))
         solver = Marquardt(noise=args[1], tolerance=tolerance, held=held)
         sol = optx.least_squares(problem.residuals, solver, start, args=args, max_steps=problem.max_steps, throw=False)
-        # The solver's state holds the residual at its solution: no model run to cost it.
+        # The solver's state holds the residual and its Jacobian at its solution: no model
+        # run to cost it, nor a Jacobian taken again for its covariance.
         new_residual = sol.state.residual
         new_cost = jnp.sum(new_residual**2)
         new_cost = jnp.where(jnp.isfinite(new_cost), new_cost, jnp.inf)
         better = (k == 0) | (new_cost < cost) | (polishing & (new_cost <= cost))
         y = jnp.where(better, sol.value, y)
         residual = jnp.where(better, new_residual, residual)
+        jacobian = jnp.where(better, sol.state.jacobian, jacobian)
         cost = jnp.where(better, new_cost, cost)
         result = optx.RESULTS.where(better, sol.result, result)
         steps = steps + jnp.asarray(sol.stats["num_steps"], jnp.int32)
@@ -337,20 +343,25 @@ def levenberg_marquardt(
         # the better one explains the frame poorly.
         poor = (cost > _UNEXPLAINED * zero_cost) & when_unexplained
         more = jnp.where(k == 1, more_starts & ((result != optx.RESULTS.successful) | poor), more)
-        return k + 1, y, residual, cost, result, steps, more, polished | polishing
+        return k + 1, y, residual, jacobian, cost, result, steps, more, polished | polishing
 
+    n_residuals = jax.eval_shape(problem.residuals, y0, args).shape[0]
+    free = tuple(k for k in range(y0.shape[0]) if k not in held)
     init = (
         jnp.asarray(0, jnp.int32),
         y0,
-        jnp.zeros(jax.eval_shape(problem.residuals, y0, args).shape, y0.dtype),
+        jnp.zeros(n_residuals, y0.dtype),
+        jnp.zeros((n_residuals, len(free)), y0.dtype),
         jnp.asarray(jnp.inf, y0.dtype),
         optx.RESULTS.successful,
         jnp.asarray(0, jnp.int32),
         jnp.asarray(False),
         ~jnp.asarray(polish),
     )
-    _, y, residual, _, result, steps, _, _ = jax.lax.while_loop(cond, body, init)
-    return y, residual, problem._data_jacobian(y, args[0]), steps, result
+    _, y, residual, jacobian, _, result, steps, _, _ = jax.lax.while_loop(cond, body, init)
+    # The data rows of the free columns; a held coordinate is not in the model (zero column).
+    data_jacobian = jnp.zeros((n_residuals - N_PRIORS, y0.shape[0]), jacobian.dtype)
+    return y, residual, data_jacobian.at[:, jnp.asarray(free)].set(jacobian[:-N_PRIORS]), steps, result
 
 
 def best_start(candidates, residuals):
@@ -392,24 +403,45 @@ def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array,
     rounded = eqx.tree_at(
         lambda i: i.fitted_flatness, problem, jnp.asarray(problem.brightness) & problem.fitted_flatness
     )
-    y, r, jacobian, steps, result = levenberg_marquardt(
-        rounded, y0, args, more_starts=more_starts, when_unexplained=problem.brightness, polish=problem.brightness
-    )
     if problem.brightness:
-        return y, r, jacobian, steps, result
+        return levenberg_marquardt(rounded, y0, args, more_starts=more_starts, when_unexplained=True, polish=True)
     fit = problem._fit
 
-    def refine(carry, fitted):
-        y, more = carry
-        stage = eqx.tree_at(
-            lambda i: (i.fitted_light, i.fitted_flatness), fit, (fitted, fitted & problem.fitted_flatness)
-        )
-        solution = levenberg_marquardt(stage, y, args, more_starts=more, polish=fitted)
-        return (solution[0], jnp.asarray(more_starts)), solution
+    def refinement(fitted: bool):
+        light = jnp.asarray(fitted)
+        return eqx.tree_at(lambda i: (i.fitted_light, i.fitted_flatness), fit, (light, light & problem.fitted_flatness))
 
-    # One traced solver run twice (the device's light, then the fitted light), not two copies.
-    _, (ys, rs, jacobians, refine_steps, results) = jax.lax.scan(
-        refine, (y, jnp.asarray(False)), jnp.asarray([False, True])
-    )
+    # The three stages are one traced solver in a scan over the problems' differing leaves:
+    # each traced solve is a copy of the whole model in the compiled program.
+    problems = _stacked([rounded, refinement(False), refinement(True)])
+    false = jnp.asarray(False)
+    more = jnp.stack([jnp.asarray(more_starts), false, jnp.asarray(more_starts)])
+    unexplained = jnp.asarray([False, True, True])
+    polished = jnp.asarray([False, False, True])
+
+    def stage(y, k):
+        solution = levenberg_marquardt(
+            problems(k), y, args, more_starts=more[k], when_unexplained=unexplained[k], polish=polished[k]
+        )
+        return solution[0], solution
+
+    _, (ys, rs, jacobians, steps, results) = jax.lax.scan(stage, y0, jnp.arange(3))
     last = jax.tree_util.tree_map(lambda a: a[-1], (ys, rs, jacobians, results))
-    return *last[:3], steps + jnp.sum(refine_steps).astype(steps.dtype), last[3]
+    return *last[:3], jnp.sum(steps).astype(steps.dtype), last[3]
+
+
+def _stacked(problems: list) -> Callable[[Int[Array, ""]], "Inverter"]:
+    """The problem at index `k` of `problems` (one structure, some leaves replaced): the
+    leaves they share are kept once, the others stacked along a leading axis."""
+    flat = [jax.tree_util.tree_flatten(p) for p in problems]
+    (leaves, treedef), others = flat[0], flat[1:]
+    if any(other_def != treedef for _, other_def in others):
+        raise ValueError("the problems of one scan must share their structure")
+    columns = list(zip(leaves, *(other for other, _ in others)))
+    shared = [all(leaf is column[0] for leaf in column) for column in columns]
+    stacked = [column[0] if same else jnp.stack(column) for column, same in zip(columns, shared)]
+
+    def at(k):
+        return jax.tree_util.tree_unflatten(treedef, [leaf if same else leaf[k] for leaf, same in zip(stacked, shared)])
+
+    return at
