@@ -26,9 +26,12 @@ on the same loads, in the same table.
 """
 
 import argparse
+import contextlib
+import csv
 import dataclasses
 import json
 import time
+from pathlib import Path
 
 import cv2
 import equinox as eqx
@@ -114,7 +117,9 @@ def _at_rest(n: int) -> mj.LoadSchedule:
     return mj.LoadSchedule(np.zeros((n, 6)), zeros, zeros, zeros + 3.0, np.zeros(n, bool))
 
 
-def run_family(family: str, nominal: mj.Device, frames: int, baseline: int, seed: int) -> dict:
+def run_family(
+    family: str, nominal: mj.Device, frames: int, baseline: int, seed: int, rows: csv.DictWriter | None = None
+) -> dict:
     unit, camera = _unit_and_camera(family, nominal)
     schedule = mj.load_schedule("mixed", frames, seed=seed)
     loaded = np.asarray(schedule.contact, bool)
@@ -130,6 +135,20 @@ def run_family(family: str, nominal: mj.Device, frames: int, baseline: int, seed
     estimate = jax.device_get(mj.invert(inverter, jnp.asarray(test), progress=True, desc=family))
     per_frame = (time.perf_counter() - start) / len(test)
     status = np.asarray(estimate.status)
+    if rows is not None:
+        for i in range(len(test)):
+            rows.writerow(
+                {
+                    "family": family,
+                    "frame": i,
+                    "status": mj.Status(int(status[i])).name.lower(),
+                    "misfit": float(estimate.misfit[i]),
+                    "contacts": int(estimate.contacts[i]),
+                    **{f"true_{a}": float(schedule.wrench[i, k]) for k, a in enumerate(mj.WRENCH_AXES)},
+                    **{a: float(estimate.wrench[i, k]) for k, a in enumerate(mj.WRENCH_AXES)},
+                    **{f"sigma_{a}": float(estimate.sigma[i, k]) for k, a in enumerate(mj.WRENCH_AXES)},
+                }
+            )
     metrics = mj.wrench_metrics(schedule.wrench[loaded], estimate.wrench[loaded], estimate.sigma[loaded])
     out = {
         "family": family,
@@ -158,6 +177,9 @@ def main(argv=None):
     parser.add_argument("--baseline", type=int, default=100, help="paper frames for the pixel baseline (0: none)")
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--json", action="store_true")
+    parser.add_argument(
+        "--per-frame", type=Path, help="also write each frame's truth, estimate, sigma, status and misfit (CSV)"
+    )
     args = parser.parse_args(argv)
     families = [f.strip() for f in args.families.split(",") if f.strip()]
     unknown = sorted(set(families) - set(FAMILIES))
@@ -165,14 +187,23 @@ def main(argv=None):
         parser.error(f"--families: unknown {', '.join(unknown)}; choose from {', '.join(FAMILIES)}")
     nominal = mj.preset("mid", layout=args.layout)
     results = []
-    for family in families:
-        result = run_family(family, nominal, args.frames, args.baseline, args.seed)
-        results.append(result)
-        if not args.json:
-            r2 = " ".join(f"{a} {result['r2'][a]:+.3f}" for a in mj.WRENCH_AXES)
-            print(
-                f"{family:12s} R² {r2}  no-contact {result['no_contact_of_loaded']}  {result['statuses']}", flush=True
-            )
+    with contextlib.ExitStack() as stack:
+        writer = None
+        if args.per_frame:
+            columns = ["family", "frame", "status", "misfit", "contacts"]
+            columns += [f"true_{a}" for a in mj.WRENCH_AXES] + list(mj.WRENCH_AXES)
+            columns += [f"sigma_{a}" for a in mj.WRENCH_AXES]
+            writer = csv.DictWriter(stack.enter_context(open(args.per_frame, "w", newline="")), columns)
+            writer.writeheader()
+        for family in families:
+            result = run_family(family, nominal, args.frames, args.baseline, args.seed, writer)
+            results.append(result)
+            if not args.json:
+                r2 = " ".join(f"{a} {result['r2'][a]:+.3f}" for a in mj.WRENCH_AXES)
+                print(
+                    f"{family:12s} R² {r2}  no-contact {result['no_contact_of_loaded']}  {result['statuses']}",
+                    flush=True,
+                )
     if args.json:
         print(json.dumps({"layout": args.layout, "frames": args.frames, "families": results}, indent=1))
 

@@ -662,11 +662,22 @@ class Inverter(eqx.Module):
         inside = self.demodulator.brightness_envelope > 0.2 * jnp.max(self.demodulator.brightness_envelope)
         x0, y0 = self._peak_centroid(jnp.where(inside, jnp.maximum(relative, 0.0), 0.0).astype(excess.dtype))
         fz = jnp.clip(jnp.sum(excess) / self.glow_per_newton, 0.0, 3.0)
-        scale = jnp.asarray(WRENCH_SCALE, excess.dtype)
-        zero = jnp.zeros((), excess.dtype)
-        moment = fz / NMM_PER_NM
-        scaled = jnp.stack([zero, zero, fz / scale[2], y0 * moment / scale[3], -x0 * moment / scale[4], zero])
-        return LoadState(scaled, x0, y0, jnp.log(jnp.asarray(TYPICAL_RADIUS, excess.dtype)), zero, zero, zero, zero)
+        return _centred_press(fz, x0, y0)
+
+    def fringe_placed_guess(self, observed: FringeFields) -> LoadState:
+        """The cold start of [`Inverter.initial_guess`][] moved to where the fringes changed
+        most ([`Inverter.fringe_change_centre`][]), with the moments of a centred pressure
+        there.
+
+        The brightness places a contact only where the light behind the sensor is the
+        reference's: a scene that changes between the reference and the frame moves the
+        brightness centroid anywhere (a 0.69 N press at (-6.4, 0.4) mm placed at (6.8, -9.6)
+        mm), the solve from there ends in a wrong basin, and the further starts built from
+        that solution stay near it. The fringe phase does not see the scene's light.
+        """
+        guess = self.initial_guess(observed)
+        x0, y0 = self.fringe_change_centre(observed)
+        return _centred_press(guess.wrench[2], x0, y0)
 
     def fringe_change_centre(self, observed: FringeFields) -> Float[Array, "2"]:
         """Where the fringes changed most from the reference: the centroid (mm, contact
@@ -1026,6 +1037,16 @@ class Inverter(eqx.Module):
 
 
 @eqx.filter_jit
+def _centred_press(fz: Float[Array, ""], x0: Float[Array, ""], y0: Float[Array, ""]) -> LoadState:
+    """A round patch of typical size at `(x0, y0)` mm pressing with `fz` newtons and no
+    shear or twist: its moments are those of that force at the patch's centre."""
+    scale = jnp.asarray(WRENCH_SCALE, fz.dtype)
+    zero = jnp.zeros((), fz.dtype)
+    moment = fz / NMM_PER_NM
+    scaled = jnp.stack([zero, zero, fz / scale[2], y0 * moment / scale[3], -x0 * moment / scale[4], zero])
+    return LoadState(scaled, x0, y0, jnp.log(jnp.asarray(TYPICAL_RADIUS, fz.dtype)), zero, zero, zero, zero)
+
+
 def _bands_at_state(
     device: Device, demodulator: Demodulator, state: LoadState, reference_wavevector, model_shape
 ) -> FringeFields:

@@ -258,8 +258,11 @@ def levenberg_marquardt(
     When neither converges (a strong wrong basin: a light, strongly sheared press whose
     brightness centroid misplaces the contact by 1.7 mm ended at 300x the right cost),
     or when the better one leaves more than `_UNEXPLAINED` of the zero-load residual
-    unexplained, six more starts in turn: the contact where the fringes changed most
-    ([`Inverter.fringe_change_centre`][moirejax.Inverter.fringe_change_centre]), the contact halfway to the centre, and each
+    unexplained, seven more starts in turn: the contact where the fringes changed most
+    ([`Inverter.fringe_change_centre`][moirejax.Inverter.fringe_change_centre]), the contact
+    halfway to the centre, the frame's own cold start placed by its fringes
+    ([`Inverter.fringe_placed_guess`][moirejax.Inverter.fringe_placed_guess]: no earlier
+    solve's basin in it, for a refinement whose first solve the brightness misled), and each
     shear direction at half its range (more above the calibrated normal force, `_HEAVY_SHEAR`);
     from a twisted start also a wider patch and half the twist (`_TWISTED`). The second test catches a wrong basin the solver
     calls converged: on 200 mixed noise-free and noisy loads, correct fits left at most
@@ -294,6 +297,7 @@ def levenberg_marquardt(
         [
             first.with_shear(0.0, 0.0).with_contact_at(fringe_centre[0], fringe_centre[1]).vector(),
             first.with_contact_at(0.5 * first.x0, 0.5 * first.y0).vector(),
+            problem.fringe_placed_guess(args[0]).vector().astype(y0.dtype),
             first.with_shear(reach, first.scaled_wrench[1]).vector(),
             first.with_shear(-reach, first.scaled_wrench[1]).vector(),
             first.with_shear(first.scaled_wrench[0], reach).vector(),
