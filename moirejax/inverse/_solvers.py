@@ -418,8 +418,7 @@ def solve_cold(problem: "Inverter", y0, args, *, more_starts: bool | Bool[Array,
     # The three stages are one traced solver in a scan over the problems' differing leaves:
     # each traced solve is a copy of the whole model in the compiled program.
     problems = _stacked([rounded, refinement(False), refinement(True)])
-    false = jnp.asarray(False)
-    more = jnp.stack([jnp.asarray(more_starts), false, jnp.asarray(more_starts)])
+    more = jnp.asarray(more_starts) & jnp.asarray([True, False, True])
     unexplained = jnp.asarray([False, True, True])
     polished = jnp.asarray([False, False, True])
 
