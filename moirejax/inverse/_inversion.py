@@ -1036,7 +1036,6 @@ class Inverter(eqx.Module):
         return jax.vmap(one)(frames)
 
 
-@eqx.filter_jit
 def _centred_press(fz: Float[Array, ""], x0: Float[Array, ""], y0: Float[Array, ""]) -> LoadState:
     """A round patch of typical size at `(x0, y0)` mm pressing with `fz` newtons and no
     shear or twist: its moments are those of that force at the patch's centre."""
@@ -1047,6 +1046,7 @@ def _centred_press(fz: Float[Array, ""], x0: Float[Array, ""], y0: Float[Array, 
     return LoadState(scaled, x0, y0, jnp.log(jnp.asarray(TYPICAL_RADIUS, fz.dtype)), zero, zero, zero, zero)
 
 
+@eqx.filter_jit
 def _bands_at_state(
     device: Device, demodulator: Demodulator, state: LoadState, reference_wavevector, model_shape
 ) -> FringeFields:
