@@ -516,12 +516,18 @@ def calibrate(
         print(f"resuming the calibration kept in {parts}", file=sys.stderr)
     fitted, uncertainty, history = _physical_fit(parts, nominal, reference, frames, wrenches, recipe, progress)
     inverter = Inverter(fitted, reference=reference, match_reference=False)
+    # The head's frames, and the frames the fit is reported on: those of the calibration
+    # frames that span the load space, at most the recipe's `head_frames`.
+    solved = np.arange(len(idx))
+    if len(idx) > recipe.head_frames:
+        solved = spanning_frames(wrenches, recipe.head_frames)
+    wrenches = wrenches[solved]
     # Cold starts, as the frames the head will correct are solved: started from their
     # reference wrench instead, the calibration frames were inverted 3x faster, but the head
     # then learned the error of a solver that knows the answer, and on an independent
     # renderer's held-out loads it corrected Fz and Ty less (R2 0.84 and 0.77 against 0.88
     # and 0.81).
-    physical = _solve_calibration_frames(parts, inverter, frames, progress)
+    physical = _solve_calibration_frames(parts, inverter, dataset.frames(idx[solved]), progress)
     ok = np.all(np.isfinite(physical.wrench), axis=1) & (physical.status != Status.NO_CONTACT)
     features = head_features(physical.wrench[ok], physical.x0[ok], physical.y0[ok], physical.radius[ok])
     if ok.sum() >= MIN_HEAD_FRAMES:
@@ -534,9 +540,10 @@ def calibrate(
     fitted_device = eqx_replace_tilt(fitted, tilt)
     metrics_physics = wrench_metrics(wrenches, physical.wrench, physical.sigma)
     metrics = wrench_metrics(wrenches, corrected, physical.sigma)
-    # Each frame is read once more for the baseline's features, and not at all without one.
+    # Each frame is read once more for the baseline's features, and not at all without one;
+    # the baseline learns from every calibration frame.
     features = ridge_features(frames, reference) if baseline_sizes else np.zeros((len(idx), 0))
-    baselines = cross_validated_ridge_r2(features, wrenches, baseline_sizes)
+    baselines = cross_validated_ridge_r2(features, dataset.wrenches[idx], baseline_sizes)
     report_dir = _report_dir(out)
     parameters = _parameter_table(nominal, fitted_device, uncertainty, dataset.true_device)
     worse_than_mean = [
@@ -570,7 +577,7 @@ def calibrate(
             wrenches,
             corrected,
             physical.sigma,
-            title=f"calibration fit ({len(idx)} frames, in-sample)",
+            title=f"calibration fit ({len(solved)} of {len(idx)} frames, in-sample)",
             extra={
                 "physics_only": metrics_physics,
                 "residual_head": head_record,
