@@ -167,21 +167,23 @@ print(format_metrics(before, title="nominal design on the held-out mixed loads")
 # radius and exposure (the *latents*). The wrench of every frame is known. The fit alternates two
 # `optimistix` Levenberg–Marquardt solves in the demodulated domain that the inversion uses
 # (notebook 02): the shared parameters over a random subset of `parameter_frames` frames with the
-# latents fixed, then all frames' latents (a vmapped four-unknown solve) with the parameters fixed,
-# `rounds` times. Positive parameters are fitted in log space; their 1-σ uncertainties come from
+# latents fixed, then the latents of the frames those subsets use (one frame after another) with
+# the parameters fixed, `rounds` times. Positive parameters are fitted in log space; their 1-σ uncertainties come from
 # the Gauss–Newton information at the end.
 #
-# The default recipe frees the stiffness $E$ and four optical parameters (glow gain, rim gain,
-# overall gain, defocus). It leaves the grating geometry alone: the reference frame already fixes
+# The default recipe frees the stiffness $E$ and five optical parameters (glow gain and width, rim
+# gain, overall gain, defocus). It leaves the grating geometry alone: the reference frame already fixes
 # the apparent upper pitch and angle, and what remains (the common scale of both pitches, the
 # separation) is degenerate with the stiffness in every load response.
 #
 # **Residual head.** The calibration frames are then inverted with the fitted device, and a small
-# MLP (`ResidualHead`, 9 inputs: the physical wrench estimate, the contact centre and log radius)
-# learns what the physics leaves, with early stopping on a held-out fifth. Its last layer starts
-# at zero, so an untrained head changes nothing. From fewer than 50 usable frames no head is
-# trained (a correction learned from a few dozen frames extrapolates badly to other loads): the
-# smoke run stops at the physics.
+# linear correction (`ResidualHead`: linear in the physical wrench estimate, the contact centre
+# and log radius, and in the load times the contact's position and size) learns what the physics
+# leaves, by ridge regression with a cross-validated penalty; an axis whose cross-validated error
+# it does not lower keeps only its mean residual. A correction of that form adds up over the axes of a load, so
+# what it learns from the protocol's isolated axes holds for combined loads. From fewer than 50
+# usable frames no head is trained (a correction learned from a few dozen frames extrapolates
+# badly to other loads): the smoke run stops at the physics.
 #
 # The report beside the fitted device holds `metrics.json` (in-sample metrics with and without
 # the head, fitted parameters with their truth, the cost per round, the paper's Eq. 9 tilt matrix,

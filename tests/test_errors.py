@@ -381,7 +381,8 @@ def test_identical_frames_are_refused_before_the_fit(tmp_path, capsys, no_compil
 def _set(out: Path, value: float, head: bool = True):
     """Write a calibration set whose device, head and report all carry `value`."""
     device = mj.preset("mid")
-    residual = ResidualHead(jnp.full((6, N_BASIS), value, jnp.float32), jnp.zeros(6, jnp.float32)) if head else None
+    zeros = jnp.zeros(6, jnp.float32)
+    residual = ResidualHead(jnp.full((6, N_BASIS), value, jnp.float32), zeros, zeros) if head else None
 
     def report(folder: Path):
         folder.mkdir()

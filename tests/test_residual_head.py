@@ -85,6 +85,37 @@ def test_noise_is_not_learned():
     assert np.max(np.abs(change)) < 0.01, np.max(np.abs(change), axis=0)
 
 
+def test_corrected_intervals_cover_the_error_the_model_does_not_describe():
+    # A unit whose physics reads each load with a systematic error the head can learn, plus
+    # an error of 0.02 of each range it cannot (what no term of its basis explains); the
+    # solver's standard errors hold only the camera noise, 0.003 of a range.
+    rng = np.random.default_rng(3)
+    noise, unexplained = 0.003, 0.02
+
+    def read(wrench, x0, y0):
+        """The physical estimate and the contact centre it found (to 0.5 mm)."""
+        error = _unit_error(wrench, x0, y0) + rng.normal(size=wrench.shape) * np.hypot(noise, unexplained)
+        return wrench + error * WRENCH_SCALE, x0 + rng.normal(0, 0.5, len(x0)), y0 + rng.normal(0, 0.5, len(y0))
+
+    wrench, x0, y0, radius = _isolated_axes(rng, 240)
+    observed, ox, oy = read(wrench, x0, y0)
+    head, _ = train_residual_head(head_features(observed, ox, oy, radius), (wrench - observed) / WRENCH_SCALE)
+    # The forces' and the twist's unexplained error is all there is to see; the tilts' is
+    # partly explained, by the contact centre the estimate found (a press's tilt is its centre
+    # times its force).
+    residual_sd = np.asarray(head.residual_sd)
+    np.testing.assert_allclose(residual_sd[[0, 1, 2, 5]], np.hypot(noise, unexplained), rtol=0.2)
+    assert np.all((residual_sd[3:5] > 2 * noise) & (residual_sd[3:5] < 1.2 * unexplained)), residual_sd
+    held_out, hx, hy, hr = _isolated_axes(rng, 400)
+    observed, ox, oy = read(held_out, hx, hy)
+    error = head.correct(observed, ox, oy, hr) - held_out
+    solver_sigma = np.full(held_out.shape, noise) * WRENCH_SCALE
+    inside = lambda sigma: np.mean(np.abs(error) < 1.96 * sigma, axis=0)  # noqa: E731
+    assert np.all(inside(solver_sigma) < 0.3), inside(solver_sigma)
+    covered = inside(head.corrected_sigma(solver_sigma))
+    assert np.all((covered > 0.9) & (covered < 0.99)), covered
+
+
 def test_head_basis_is_the_features_and_the_normal_force_times_the_contact():
     features = np.arange(1.0, 10.0)[None]
     basis = np.asarray(head_basis(features))
@@ -101,6 +132,7 @@ def test_a_head_round_trips_through_its_file_and_an_old_one_is_refused(tmp_path)
     save_head(tmp_path / "fit.head.eqx", head)
     again = load_head(tmp_path / "fit.head.eqx")
     np.testing.assert_array_equal(again.correct(read, x0, y0, radius), head.correct(read, x0, y0, radius))
+    np.testing.assert_array_equal(np.asarray(again.residual_sd), np.asarray(head.residual_sd))
     (tmp_path / "fit.head.eqx.json").write_text(json.dumps({"width": 32, "depth": 2, "dtype": "float32"}))
     with pytest.raises(mj.DataError, match=r"fit\.head\.eqx: a residual head of another kind"):
         load_head(tmp_path / "fit.head.eqx")

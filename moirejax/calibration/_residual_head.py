@@ -20,6 +20,13 @@ and twists at the centre), took their weights from noise and read combined loads
 It is fitted in closed form by ridge regression, the penalty chosen by cross-validation on
 the calibration frames; an axis whose cross-validated error it does not lower, beyond the
 noise of that comparison, below its mean residual's keeps just that mean.
+
+The solver's standard errors hold the camera noise only, not the error of a model that
+describes a unit inexactly, which on such a unit is most of the error: a corrected
+estimate's standard error adds the head's cross-validated residual to the solver's, in
+quadrature. That residual holds part of the noise as well, so the interval errs wide where
+the model fits; it is the error the calibration measured on frames the correction did not
+learn from.
 """
 
 import json
@@ -48,6 +55,8 @@ _FOLDS = 5
 # most of an axis' error): on an independent renderer's line gratings, the shear along the
 # lines, whose held-out R² the correction lifts from 0.52 to 0.70, fell by 1.6 of them.
 _SIGNIFICANCE = 1.0
+# What a head file holds, in order: a file of another layout is refused by name.
+_LEAVES = ["weight", "bias", "residual_sd"]
 
 
 def head_features(wrench: np.ndarray, x0: np.ndarray, y0: np.ndarray, radius: np.ndarray) -> np.ndarray:
@@ -73,16 +82,19 @@ class ResidualHead(eqx.Module):
 
     - `weight`: `(6, 12)`, the scaled correction per basis term.
     - `bias`: `(6,)`, the scaled correction of every estimate.
+    - `residual_sd`: `(6,)`, the scaled root-mean-square error the correction left on
+      calibration frames it did not learn from (module notes).
     """
 
     weight: Float[Array, "6 12"]
     bias: Float[Array, "6"]
+    residual_sd: Float[Array, "6"]
 
     def __check_init__(self):
-        if self.weight.shape != (6, N_BASIS) or self.bias.shape != (6,):
+        if self.weight.shape != (6, N_BASIS) or self.bias.shape != (6,) or self.residual_sd.shape != (6,):
             raise ValueError(
-                f"a residual head has a (6, {N_BASIS}) weight and a (6,) bias, got {self.weight.shape} "
-                f"and {self.bias.shape}"
+                f"a residual head has a (6, {N_BASIS}) weight, a (6,) bias and a (6,) residual_sd, got "
+                f"{self.weight.shape}, {self.bias.shape} and {self.residual_sd.shape}"
             )
 
     def __call__(self, features: Float[Array, " 9"]) -> Float[Array, " 6"]:
@@ -93,6 +105,12 @@ class ResidualHead(eqx.Module):
         # In the head's own precision: a head saved in float32 also corrects float64 runs.
         features = jnp.asarray(head_features(wrench, x0, y0, radius), dtype=self.weight.dtype)
         return wrench + np.asarray(jax.vmap(self)(features), dtype=np.float64) * WRENCH_SCALE
+
+    def corrected_sigma(self, sigma: np.ndarray) -> np.ndarray:
+        """Standard errors `(n, 6)` of corrected wrenches, in N and N·m, from the solver's
+        `sigma`: both in quadrature (module notes)."""
+        residual = np.asarray(self.residual_sd, dtype=np.float64) * WRENCH_SCALE
+        return np.sqrt(np.asarray(sigma, dtype=np.float64) ** 2 + residual**2)
 
 
 def _ridge(basis: np.ndarray, targets: np.ndarray, penalty: float):
@@ -120,7 +138,8 @@ def train_residual_head(
     (`_SIGNIFICANCE`): a correction that does not beat the noise of its own validation is not
     learned, and the axis keeps its mean residual. Returns the head and its training
     record (the penalty, each axis' cross-validated mean squared error without and with the
-    correction, and the corrected axes)."""
+    correction, and the corrected axes). The head's `residual_sd` is the cross-validated
+    root-mean-square error of what each axis keeps: the correction, or the mean alone."""
     basis = np.asarray(head_basis(np.asarray(features, np.float64)), np.float64)
     targets = np.asarray(targets, np.float64)
     n = len(basis)
@@ -139,7 +158,8 @@ def train_residual_head(
     weight, bias = _ridge(basis, targets, _PENALTIES[best])
     # An axis not corrected keeps the mean of its residual, the correction it was compared with.
     weight, bias = np.where(corrected[:, None], weight, 0.0), np.where(corrected, bias, targets.mean(axis=0))
-    head = ResidualHead(jnp.asarray(weight, dtype), jnp.asarray(bias, dtype))
+    kept = np.where(corrected, errors[best].mean(axis=0), without.mean(axis=0))
+    head = ResidualHead(jnp.asarray(weight, dtype), jnp.asarray(bias, dtype), jnp.asarray(np.sqrt(kept), dtype))
     return head, {
         "penalty": _PENALTIES[best],
         "cv_mse_without": without.mean(axis=0).tolist(),
@@ -155,7 +175,7 @@ def save_head(path: str | Path, head: ResidualHead) -> None:
     buffer = io.BytesIO()
     eqx.tree_serialise_leaves(buffer, head)
     atomic_write_bytes(path, buffer.getvalue())
-    meta = {"kind": "linear", "basis": N_BASIS, "dtype": str(head.weight.dtype)}
+    meta = {"kind": "linear", "basis": N_BASIS, "leaves": _LEAVES, "dtype": str(head.weight.dtype)}
     atomic_write_text(str(path) + ".json", json.dumps(meta) + "\n")
 
 
@@ -163,12 +183,12 @@ def load_head(path: str | Path) -> ResidualHead:
     """Read a head written by [`save_head`][], in the precision it was saved in (a head
     saved in float32 loads under `jax_enable_x64` too)."""
     meta = json.loads(Path(str(path) + ".json").read_text())
-    if meta.get("kind") != "linear" or meta.get("basis") != N_BASIS:
+    if meta.get("kind") != "linear" or meta.get("basis") != N_BASIS or meta.get("leaves") != _LEAVES:
         raise DataError(
             f"{path}: a residual head of another kind ({meta}), written by an earlier moirejax; "
             "calibrate the unit again, or read the device alone with moirejax.load_device"
         )
     dtype = jnp.dtype(meta["dtype"])
-    skeleton = ResidualHead(jnp.zeros((6, N_BASIS), dtype), jnp.zeros(6, dtype))
+    skeleton = ResidualHead(jnp.zeros((6, N_BASIS), dtype), jnp.zeros(6, dtype), jnp.zeros(6, dtype))
     with open(path, "rb") as f:
         return eqx.tree_deserialise_leaves(f, skeleton)

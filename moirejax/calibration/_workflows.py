@@ -176,14 +176,16 @@ class _Solutions(NamedTuple):
         )
 
 
-def _apply_head(head: ResidualHead | None, result: _Solutions) -> np.ndarray:
-    wrench = np.array(result.wrench)
+def _apply_head(head: ResidualHead | None, result: _Solutions) -> tuple[np.ndarray, np.ndarray]:
+    """The wrenches and their standard errors, corrected by the head where there is one."""
+    wrench, sigma = np.array(result.wrench), np.array(result.sigma)
     if head is None:
-        return wrench
+        return wrench, sigma
     ok = np.all(np.isfinite(wrench), axis=1) & (result.status != Status.NO_CONTACT)
     if np.any(ok):
         wrench[ok] = head.correct(wrench[ok], result.x0[ok], result.y0[ok], result.radius[ok])
-    return wrench
+        sigma[ok] = head.corrected_sigma(sigma[ok])
+    return wrench, sigma
 
 
 # Calibration frames solved per part kept in `OUT.parts/`: what an interruption can lose.
@@ -535,11 +537,11 @@ def calibrate(
     else:
         # A learned correction from a few dozen frames extrapolates badly to other loads.
         head, head_record = None, {"skipped": f"{int(ok.sum())} usable frames, fewer than {MIN_HEAD_FRAMES}"}
-    corrected = _apply_head(head, physical)
+    corrected, corrected_sigma = _apply_head(head, physical)
     tilt, tilt_r2 = fit_tilt_matrix(physical.x0[ok], physical.y0[ok], wrenches[ok][:, 3:5], fitted)
     fitted_device = eqx_replace_tilt(fitted, tilt)
     metrics_physics = wrench_metrics(wrenches, physical.wrench, physical.sigma)
-    metrics = wrench_metrics(wrenches, corrected, physical.sigma)
+    metrics = wrench_metrics(wrenches, corrected, corrected_sigma)
     # Each frame is read once more for the baseline's features, and not at all without one;
     # the baseline learns from every calibration frame.
     features = ridge_features(frames, reference) if baseline_sizes else np.zeros((len(idx), 0))
@@ -576,7 +578,7 @@ def calibrate(
             metrics,
             wrenches,
             corrected,
-            physical.sigma,
+            corrected_sigma,
             title=f"calibration fit ({len(solved)} of {len(idx)} frames, in-sample)",
             extra={
                 "physics_only": metrics_physics,
@@ -668,9 +670,9 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
     idx = _select(dataset, None)
     inverter = Inverter(device, reference=reference)
     result = _Solutions.of(invert(inverter, dataset.frames(idx), progress=progress, desc="evaluate"))
-    wrench = _apply_head(head, result)
+    wrench, sigma = _apply_head(head, result)
     truth = dataset.wrenches[idx]
-    metrics = wrench_metrics(truth, wrench, result.sigma)
+    metrics = wrench_metrics(truth, wrench, sigma)
     statuses = {Status(int(s)).name.lower(): int(np.sum(result.status == s)) for s in np.unique(result.status)}
     extra: dict = {"status_counts": statuses}
     if head is not None:
@@ -683,7 +685,7 @@ def evaluate(device_path: str | Path, data: str | Path, out_dir: str | Path, *, 
             metrics,
             truth,
             wrench,
-            result.sigma,
+            sigma,
             title=f"evaluation on {Path(data).name}",
             extra=extra,
         )
@@ -726,7 +728,7 @@ def transfer(
         physical = _Solutions.of(invert(inverter, frames, progress=progress, desc="check residual head"))
         ok = np.all(np.isfinite(physical.wrench), axis=1) & (physical.status != Status.NO_CONTACT)
         without = float(np.mean(((physical.wrench[ok] - wrenches[ok]) / WRENCH_SCALE) ** 2))
-        with_head = float(np.mean(((_apply_head(head, physical)[ok] - wrenches[ok]) / WRENCH_SCALE) ** 2))
+        with_head = float(np.mean(((_apply_head(head, physical)[0][ok] - wrenches[ok]) / WRENCH_SCALE) ** 2))
         head_check = {
             "frames": int(ok.sum()),
             "scaled_mse_without_head": without,

@@ -213,14 +213,14 @@ def _patch_columns(c) -> list[np.ndarray]:
 
 
 def _rows(names: list[str], estimate: Estimate, messages: list[str | None], head=None) -> list[list]:
-    wrench = np.asarray(estimate.wrench)
+    wrench, sigma = np.asarray(estimate.wrench), np.asarray(estimate.sigma)
     if head is not None:
         ok = np.all(np.isfinite(wrench), axis=1) & (np.asarray(estimate.status) != Status.NO_CONTACT)
         if np.any(ok):
-            wrench = wrench.copy()
+            wrench, sigma = wrench.copy(), sigma.copy()
             c = estimate.contact
             wrench[ok] = head.correct(wrench[ok], np.asarray(c.x0)[ok], np.asarray(c.y0)[ok], np.asarray(c.radius)[ok])
-    sigma = np.asarray(estimate.sigma)
+            sigma[ok] = head.corrected_sigma(sigma[ok])
     status = np.asarray(estimate.status)
     c = estimate.contact
     second = estimate.second_contact
