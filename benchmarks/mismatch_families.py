@@ -137,15 +137,16 @@ def _write_dataset(folder: Path, nominal: mj.Device, rest: np.ndarray, frames: n
 
 def _calibrated(family, nominal, unit, camera, schedule, test, rest, n, seed) -> dict:
     """Calibrate the family's unit on `n` paper-protocol frames and score it on `test`."""
-    root = Path(tempfile.mkdtemp(prefix=f"mismatch-{family}-"))
     paper = mj.load_schedule("paper", n, seed=seed + 3)
-    mj.save_device(root / "nominal.json", nominal)
-    _write_dataset(root / "cal", nominal, rest, _render(family, unit, camera, paper, seed + 3000), paper)
-    _write_dataset(root / "test", nominal, rest, test, schedule)
-    start = time.perf_counter()
-    fit = mj.calibrate(root / "nominal.json", root / "cal", root / "fit.json", max_frames=None, progress=False)
-    calibrate_s = time.perf_counter() - start
-    held_out = mj.evaluate(root / "fit.json", root / "test", root / "evaluation", progress=False)
+    with tempfile.TemporaryDirectory(prefix=f"mismatch-{family}-") as folder:
+        root = Path(folder)
+        mj.save_device(root / "nominal.json", nominal)
+        _write_dataset(root / "cal", nominal, rest, _render(family, unit, camera, paper, seed + 3000), paper)
+        _write_dataset(root / "test", nominal, rest, test, schedule)
+        start = time.perf_counter()
+        fit = mj.calibrate(root / "nominal.json", root / "cal", root / "fit.json", max_frames=None, progress=False)
+        calibrate_s = time.perf_counter() - start
+        held_out = mj.evaluate(root / "fit.json", root / "test", root / "evaluation", progress=False)
     physics = held_out.get("physics_only", held_out)
     return {
         "calibration_frames": n,
