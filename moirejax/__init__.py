@@ -30,6 +30,7 @@ from .calibration import (
     load_calibrated as load_calibrated,
     load_recipe as load_recipe,
     Recipe as Recipe,
+    ResidualHead as ResidualHead,
     ridge_baseline as ridge_baseline,
     spanning_frames as spanning_frames,
     transfer as transfer,

@@ -216,3 +216,34 @@ def test_the_approach_aligns_on_the_cap_it_sees(device, inverter):
     assert np.all(timeline.cap_offset[touching] == timeline.cap_offset[touching[0]])
     assert np.all(timeline.status[touching] == "converged")
     assert np.all(np.abs(timeline.wrench_estimated[touching, 2] - timeline.wrench_true[touching, 2]) < 0.03)
+
+
+def test_a_calibrations_head_corrects_each_live_wrench_and_widens_its_covariance(device, inverter, reference):
+    # The head's correction and residual, applied per frame, are the ones `invert` applies to
+    # a recording: the same wrench and, on the covariance's diagonal, the same sigma.
+    sensor = SimulatedSensor(device)
+    frame = sensor.render(np.array([0.1, -0.05, 0.8, 0.001, -0.002, 0.002]), Contact(1.0, -2.0, 3.0))
+    rng = np.random.default_rng(0)
+    head = mj.ResidualHead(
+        jax.numpy.asarray(rng.normal(0.0, 0.05, (6, 12)), jax.numpy.float32),
+        jax.numpy.asarray(rng.normal(0.0, 0.05, 6), jax.numpy.float32),
+        jax.numpy.asarray([0.01, 0.02, 0.03, 0.01, 0.02, 0.005], jax.numpy.float32),
+    )
+    plain = make_tactile_processor(inverter, reference, pressure_shape=(16, 16))
+    corrected = make_tactile_processor(inverter, reference, pressure_shape=(16, 16), head=head)
+    wrench, covariance, status, _, extras = plain(frame)
+    fixed, fixed_covariance, fixed_status, _, fixed_extras = corrected(frame)
+    assert status == fixed_status == "converged"
+    contact = plain.step(np.asarray(frame, plain.dtype), plain.cold_track)[0].contact
+    position = [np.asarray(v, np.float64).reshape(1) for v in (contact.x0, contact.y0, contact.radius)]
+    np.testing.assert_allclose(fixed, head.correct(wrench[None], *position)[0], rtol=1e-6, atol=1e-9)
+    scale = np.array([mj.PAPER_RANGES[axis] for axis in mj.WRENCH_AXES])
+    assert np.max(np.abs(fixed - wrench) / scale) > 1e-3
+    np.testing.assert_allclose(
+        np.sqrt(np.diag(fixed_covariance)), head.corrected_sigma(np.sqrt(np.diag(covariance))[None])[0], rtol=1e-9
+    )
+    np.testing.assert_allclose(
+        fixed_covariance - np.diag(np.diag(fixed_covariance)), covariance - np.diag(np.diag(covariance))
+    )
+    # The pressure map is drawn from the corrected wrench, not the physical one.
+    assert not np.allclose(fixed_extras["pressure"], extras["pressure"])

@@ -10,6 +10,7 @@ from ._calibration import (
     Recipe as Recipe,
 )
 from ._metrics import format_metrics as format_metrics, wrench_metrics as wrench_metrics
+from ._residual_head import ResidualHead as ResidualHead
 from ._workflows import (
     calibrate as calibrate,
     calibration_verdict as calibration_verdict,

@@ -33,7 +33,6 @@ import json
 from pathlib import Path
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -101,16 +100,28 @@ class ResidualHead(eqx.Module):
         return self.weight @ head_basis(features) + self.bias
 
     def correct(self, wrench: np.ndarray, x0: np.ndarray, y0: np.ndarray, radius: np.ndarray) -> np.ndarray:
-        """Corrected wrenches `(n, 6)` in N and N·m."""
+        """Corrected wrenches `(n, 6)` in N and N·m. NumPy throughout: a live stream corrects
+        one frame at a time without dispatching JAX operations."""
         # In the head's own precision: a head saved in float32 also corrects float64 runs.
-        features = jnp.asarray(head_features(wrench, x0, y0, radius), dtype=self.weight.dtype)
-        return wrench + np.asarray(jax.vmap(self)(features), dtype=np.float64) * WRENCH_SCALE
+        weight, bias = np.asarray(self.weight), np.asarray(self.bias)
+        basis = head_basis(head_features(wrench, x0, y0, radius).astype(weight.dtype))
+        return wrench + np.asarray(basis @ weight.T + bias, dtype=np.float64) * WRENCH_SCALE
+
+    def residual_variance(self) -> np.ndarray:
+        """The variance `(6,)` in N² and (N·m)² the head adds to a corrected estimate's: the
+        square of its cross-validated residual (module notes)."""
+        return (np.asarray(self.residual_sd, dtype=np.float64) * WRENCH_SCALE) ** 2
 
     def corrected_sigma(self, sigma: np.ndarray) -> np.ndarray:
         """Standard errors `(n, 6)` of corrected wrenches, in N and N·m, from the solver's
-        `sigma`: both in quadrature (module notes)."""
-        residual = np.asarray(self.residual_sd, dtype=np.float64) * WRENCH_SCALE
-        return np.sqrt(np.asarray(sigma, dtype=np.float64) ** 2 + residual**2)
+        `sigma`: both in quadrature."""
+        return np.sqrt(np.asarray(sigma, dtype=np.float64) ** 2 + self.residual_variance())
+
+    def corrected_covariance(self, covariance: np.ndarray) -> np.ndarray:
+        """Covariances `(..., 6, 6)` of corrected wrenches from the solver's: the head's
+        residual variance added on the diagonal, so that their diagonals are the squares of
+        [`corrected_sigma`][ResidualHead.corrected_sigma]."""
+        return np.asarray(covariance, dtype=np.float64) + np.diag(self.residual_variance())
 
 
 def _ridge(basis: np.ndarray, targets: np.ndarray, penalty: float):

@@ -580,10 +580,10 @@ def _live_group(args: argparse.Namespace) -> int:
     specs = {}
     for name, (device_file, source) in sensors.items():
         try:
-            device, _ = load_calibrated(device_file)
+            device, head = load_calibrated(device_file)
         except DataError as e:
             raise DataError(f"{e} (given by --sensor {name})") from None
-        specs[name] = {"device": device, "source": _live_source(source)}
+        specs[name] = {"device": device, "source": _live_source(source), "head": head}
         if args.filter == "kalman":
             specs[name]["filter"] = WrenchFilter(args.process_noise)
     sinks = _live_sinks(args)
@@ -618,7 +618,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
         raise ValueError("live needs --device FIT.json (one sensor) or --sensor NAME=DEVICE.json@SOURCE (several)")
     if args.ft and not args.record_frames:
         raise ValueError("--ft logs a force/torque sensor beside recorded frames: give the folder with --record-frames")
-    device, _ = load_calibrated(args.device)
+    device, head = load_calibrated(args.device)
     source = _live_source(args.source or "sim")
     if args.record:
         check_output_file(args.record, argument="record")
@@ -660,6 +660,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
             reference=args.reference,
             replay_fps=args.replay_fps,
             records=records,
+            head=head,
         )
     finally:
         for sink in sinks:

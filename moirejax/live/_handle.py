@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from ..calibration import ResidualHead
 from ..inverse import Inverter
 from ..physics import Device
 from ._camera import AbstractFrameSource, Frame
@@ -93,6 +94,8 @@ class SensorHandle:
     - `max_frames`: stop after this many frames.
     - `vision`: name the colour seen through the sensor in vision mode.
     - `reference_frames`: frames averaged into a captured reference.
+    - `head`: the calibration's [`ResidualHead`][] ([`load_calibrated`][] returns it with
+        the device), applied to every wrench and covariance.
 
     The handle starts when made by [`open_sensor`][] (or on [`start`][SensorHandle.start]);
     leave it with [`close`][SensorHandle.close] or a `with` block.
@@ -118,6 +121,7 @@ class SensorHandle:
         max_frames: int | None = None,
         vision: bool = True,
         reference_frames: int = 5,
+        head: ResidualHead | None = None,
     ):
         if not 0 < drift_rate <= 1 or drift_every < 1 or not max_drift > 0 or history < 1:
             raise ValueError("need 0 < drift_rate <= 1, drift_every >= 1, max_drift > 0 and history >= 1")
@@ -145,7 +149,7 @@ class SensorHandle:
         # Later references keep the geometry and the grating registration this one found,
         # so that the compiled solver carries over (FrameTracker.with_inverter).
         self._device = first.device
-        self._processor = make_tactile_processor(first, reference, pressure_shape=PRESSURE_SHAPE)
+        self._processor = make_tactile_processor(first, reference, pressure_shape=PRESSURE_SHAPE, head=head)
         self._gate = make_gate(device)
         self._probe = make_colour_probe(device) if vision else None
         self._rectification = rectification

@@ -28,6 +28,7 @@ import numpy as np
 
 from .._conventions import PA_PER_MPA
 from .._fileio import DataError
+from ..calibration import ResidualHead
 from ..inverse import frame_tracker, Inverter, Status
 from ..physics import Contact, Device, surface_grid, surface_tractions
 from ..simulate import load_schedule, LoadSchedule, scene_reflectance, SceneObject, Simulator
@@ -76,6 +77,9 @@ class TactileProcessor:
     and `extras` the fitted contact patch's area (`contact_area_mm2`) and, with
     `pressure_shape`, its pressure map in Pa (`pressure`, [`surface_tractions`][] of the
     estimate on a grid of that shape over the field).
+    With a calibration's `head` ([`ResidualHead`][]), a frame's wrench is the corrected one
+    and its covariance is widened by the head's residual, as `invert` reports them; the
+    pressure map is drawn from the corrected wrench, so map and wrench agree.
     The solver continues from the previous frame's solution and Jacobian while frames converge; any
     other outcome resets it to a cold start, so one bad frame cannot drag the next ones
     off. Frames are cast to the device's dtype, so every call hits the one compiled
@@ -88,9 +92,11 @@ class TactileProcessor:
         inverter: Inverter,
         warmup_frame: np.ndarray | None = None,
         pressure_shape: tuple[int, int] | None = None,
+        head: ResidualHead | None = None,
     ):
         device = inverter.device
         self.inverter = inverter
+        self.head = head
         self.step = frame_tracker(inverter)
         self.shape = (device.height, device.width)
         self.dtype = np.dtype(device.p1.dtype)
@@ -133,13 +139,20 @@ class TactileProcessor:
         with self._lock:
             estimate, self.track = self.step(frame, self.track)
         status = Status(int(estimate.status))
-        radius = float(estimate.contact.radius)
+        contact = estimate.contact
+        radius = float(contact.radius)
+        wrench = np.asarray(estimate.wrench, np.float64)
+        covariance = np.asarray(estimate.covariance, np.float64)
+        if self.head is not None and status in _WITH_WRENCH and np.all(np.isfinite(wrench)):
+            position = [np.asarray(v, np.float64).reshape(1) for v in (contact.x0, contact.y0, contact.radius)]
+            wrench = self.head.correct(wrench[None], *position)[0]
+            covariance = self.head.corrected_covariance(covariance)
         extras: dict[str, Any] = {"contact_area_mm2": math.pi * radius**2 if status in _WITH_WRENCH else None}
         if self._pressure is not None and status in _WITH_WRENCH:
-            extras["pressure"] = np.asarray(self._pressure(estimate.wrench, estimate.contact), np.float32)
+            extras["pressure"] = np.asarray(self._pressure(wrench.astype(self.dtype), contact), np.float32)
         return (
-            np.asarray(estimate.wrench, np.float64),
-            np.asarray(estimate.covariance, np.float64),
+            wrench,
+            covariance,
             status.name.lower(),
             status.message,
             extras,
@@ -151,7 +164,10 @@ _WITH_WRENCH = (Status.CONVERGED, Status.MAX_STEPS)
 
 
 def make_tactile_processor(
-    inverter: Inverter, warmup_frame: np.ndarray | None = None, pressure_shape: tuple[int, int] | None = None
+    inverter: Inverter,
+    warmup_frame: np.ndarray | None = None,
+    pressure_shape: tuple[int, int] | None = None,
+    head: ResidualHead | None = None,
 ) -> TactileProcessor:
     """Adapt a [`frame_tracker`][] step to `process_tactile` of [`run_pipeline`][].
 
@@ -161,11 +177,13 @@ def make_tactile_processor(
     - `warmup_frame`: a frame of the device's size to compile with (e.g. the reference);
         default a uniform gray frame.
     - `pressure_shape`: also return each frame's pressure map on a grid of this shape.
+    - `head`: the calibration's [`ResidualHead`][] (from [`load_calibrated`][]), applied to
+        every frame's wrench and covariance; `None` reads the physics alone.
 
     **Returns:** a [`TactileProcessor`][]: `fn(gray) -> (wrench, covariance, status, message)`,
     already compiled.
     """
-    return TactileProcessor(inverter, warmup_frame, pressure_shape)
+    return TactileProcessor(inverter, warmup_frame, pressure_shape, head)
 
 
 def make_gate(device: Device, **kwargs: Any) -> GateER:
@@ -503,6 +521,7 @@ def run_live(
     replay_fps: float | None = None,
     stop: threading.Event | None = None,
     records: RecordStream | None = None,
+    head: ResidualHead | None = None,
 ) -> LiveSummary:
     """Run the live sensor: frames from `source_spec` to wrench records in `sinks`.
 
@@ -531,6 +550,8 @@ def run_live(
     - `stop`: a `threading.Event` that ends the run when set.
     - `records`: a [`RecordStream`][] completing every record (sensor and ROS frame names,
         range flags, centre of pressure, filter); default one with the default names.
+    - `head`: the calibration's [`ResidualHead`][] ([`load_calibrated`][] returns it with
+        the device): every wrench and covariance corrected by it, as `invert` does.
 
     **Returns:** the [`LiveSummary`][]; see [`format_summary`][].
 
@@ -571,7 +592,7 @@ def run_live(
             raise ValueError(f"reference frame is {reference_frame.shape}, device expects {shape}")
         inverter = Inverter(device, reference=reference_frame)
     draws_pressure = any(hasattr(sink, "emit_pressure") for sink in sinks)
-    processor = make_tactile_processor(inverter, reference_frame, PRESSURE_SHAPE if draws_pressure else None)
+    processor = make_tactile_processor(inverter, reference_frame, PRESSURE_SHAPE if draws_pressure else None, head)
 
     owned: list[Any] = []
     all_sinks = list(sinks)
