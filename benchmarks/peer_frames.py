@@ -7,7 +7,8 @@
 `--data` reads a folder written by the peer renderer (`frames/*.png`, `wrench.csv` with a
 `contact` column); `--render N` runs the renderer first, when `../shared/peer/raycast_sensor.py`
 sits beside the checkout. Every frame is inverted cold with the nominal Mid design as the
-renderer describes it (line gratings, duty 0.5) and no calibration; the no-contact frames
+renderer describes it (line gratings, duty 0.5; `--design` for the paper's others: the
+renderer then draws that design's pitches) and no calibration; the no-contact frames
 are the reference. Prints R² per axis over the loaded frames, how many were called "no
 contact", the status counts, the 95% interval coverage, and the time per frame.
 
@@ -38,6 +39,11 @@ import moirejax as mj
 
 AXES = mj.WRENCH_AXES
 PEER = Path(__file__).resolve().parents[2] / "shared" / "peer" / "raycast_sensor.py"
+# The upper and lower grating pitches (mm) of the paper's designs, as `mj.preset` draws them.
+DESIGN_PITCHES = {
+    name: (round(float(mj.preset(name).p1), 6), round(float(mj.preset(name).p2), 6))
+    for name in ("dense", "mid", "sparse")
+}
 
 
 def read_peer(folder: Path):
@@ -48,20 +54,22 @@ def read_peer(folder: Path):
     return frames, wrench, contact
 
 
-def render_peer(n: int, seed: int, supersample: int | None = None) -> Path:
-    """`n` mixed loads of the peer renderer in a new folder; with `supersample`, its pixels
-    sampled at that many points a side instead of its own 4 (its command line has no option
-    for it, so its device's default is replaced before its `main` runs)."""
+def render_peer(n: int, seed: int, supersample: int | None = None, design: str = "mid") -> Path:
+    """`n` mixed loads of the peer renderer in a new folder, for one of the paper's designs
+    (its pitches; the renderer's own default is Mid); with `supersample`, its pixels sampled
+    at that many points a side instead of its own 4. Its command line has no option for
+    either, so its device's defaults are replaced before its `main` runs."""
     folder = Path(tempfile.mkdtemp(prefix="peer-"))
     argv = [str(PEER), str(folder), "--n", str(n), "--seed", str(seed)]
-    if supersample is None:
-        subprocess.run([sys.executable, *argv], check=True)
-        return folder
+    p_far, p_near = DESIGN_PITCHES[design]
+    overrides = {"p_far": p_far, "p_near": p_near}
+    if supersample is not None:
+        overrides["supersample"] = int(supersample)
     script = (
         "import functools, sys\n"
         f"sys.path.insert(0, {str(PEER.parent)!r})\n"
         "import raycast_sensor as peer\n"
-        f"peer.Device = functools.partial(peer.Device, supersample={int(supersample)})\n"
+        f"peer.Device = functools.partial(peer.Device, **{overrides!r})\n"
         f"sys.argv = {argv!r}\n"
         "peer.main()\n"
     )
@@ -69,10 +77,10 @@ def render_peer(n: int, seed: int, supersample: int | None = None) -> Path:
     return folder
 
 
-def calibrated(device: mj.Device, test: Path, n: int, seed: int) -> dict:
+def calibrated(device: mj.Device, test: Path, n: int, seed: int, design: str = "mid") -> dict:
     """Calibrate on `n` other loads of the renderer and score the fit on the loads in `test`."""
     work = Path(tempfile.mkdtemp(prefix="peer-calibration-"))
-    train = render_peer(n, seed)
+    train = render_peer(n, seed, design=design)
     mj.save_device(work / "nominal.json", device)
     for name, folder in (("train", train), ("test", test)):
         mj.import_recording(
@@ -107,6 +115,12 @@ def main():
         help="with --render: sample each pixel at this many points a side (the renderer's own is 4, which aliases"
         " its gratings' harmonics into the fringe bands; 12 or more does not, at about 30 s a frame)",
     )
+    parser.add_argument(
+        "--design",
+        choices=sorted(DESIGN_PITCHES),
+        default="mid",
+        help="with --render and --calibrate: the paper's design the renderer draws (its grating pitches)",
+    )
     parser.add_argument("--json", action="store_true")
     parser.add_argument(
         "--per-frame", type=Path, help="also write each frame's truth, estimate, sigma and status (CSV)"
@@ -121,9 +135,9 @@ def main():
     if args.data is None:
         if not args.render or not PEER.exists():
             parser.error(f"give --data DIR, or --render N with the peer renderer at {PEER}")
-        args.data = render_peer(args.render, args.seed, args.supersample)
+        args.data = render_peer(args.render, args.seed, args.supersample, args.design)
     frames, truth, contact = read_peer(args.data)
-    device = mj.preset("mid", layout="lines", duty1=0.5, duty2=0.5)
+    device = mj.preset(args.design, layout="lines", duty1=0.5, duty2=0.5)
     start = time.perf_counter()
     inverter = mj.Inverter(device, frames[~contact].mean(axis=0))
     first = mj.invert(inverter, jnp.asarray(frames[0], jnp.float32))
@@ -146,6 +160,7 @@ def main():
     coverage = np.mean(np.abs(wrench[loaded] - y) <= 1.96 * sigma[loaded], axis=0)
     report = {
         "data": str(args.data),
+        "design": args.design,
         "frames": int(len(frames)),
         "loaded": int(loaded.sum()),
         "r2": dict(zip(AXES, np.round(r2, 4).tolist())),
@@ -159,7 +174,7 @@ def main():
         "peak_memory_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
     }
     if args.calibrate:
-        report["calibrated"] = calibrated(device, args.data, args.calibrate, args.calibration_seed)
+        report["calibrated"] = calibrated(device, args.data, args.calibrate, args.calibration_seed, args.design)
     if args.per_frame:
         with open(args.per_frame, "w", newline="") as f:
             out = csv.writer(f)
