@@ -233,8 +233,18 @@ def _robust_scale(r: jax.Array) -> jax.Array:
 def _parameter_solve(
     problem: _Problem, theta, free: tuple[int, ...], latents: LoadState, observed, prior_mean, prior_weight, steps: int
 ):
-    """Levenberg–Marquardt over the entries `free` of `theta`, the others held."""
+    """Levenberg–Marquardt over the entries `free` of `theta`, the others held, on the
+    residual each frame keeps once its own contact (centre and radius) has taken up what it
+    can: the frames' residuals projected off the directions their contacts move them in,
+    at the start (`_contact_directions`).
+
+    Held fixed instead, the contacts pin the parameters they trade with (a stiffer layer
+    reads as a smaller patch under the same reading): alternating between the two then
+    moves such a parameter little or not at all, however far the data put it."""
     index = jnp.asarray(free)
+    data = (latents, observed)
+    start = theta[index]
+    directions = jax.lax.stop_gradient(_contact_directions(problem, theta, latents, observed))
 
     def data_residuals(sub, args):
         latents, observed = args
@@ -242,10 +252,9 @@ def _parameter_solve(
         per_frame = jax.vmap(problem.frame_residuals, in_axes=(None, 0, 0, None))(
             model, latents, observed, _zero_load(model)
         )
+        per_frame = per_frame - jnp.einsum("fmk,fk->fm", directions, jnp.einsum("fmk,fm->fk", directions, per_frame))
         return per_frame.ravel()
 
-    data = (latents, observed)
-    start = theta[index]
     noise = jax.lax.stop_gradient(_robust_scale(data_residuals(start, data)))
 
     def residuals(sub, args):
@@ -263,6 +272,40 @@ def _parameter_solve(
     return theta.at[index].set(sol.value), covariance, jnp.sum(r**2)
 
 
+def _contact_of(state: LoadState):
+    return state.x0, state.y0, state.log_radius
+
+
+def _contact_directions(problem: _Problem, theta, latents: LoadState, observed) -> Float[Array, "f m 3"]:
+    """For every frame, an orthonormal basis `(m, 3)` of the directions its residual moves in
+    when its contact's centre and log radius move. A frame's residual depends on its own
+    contact only, so one tangent per contact unknown, set in every frame at once, gives each
+    frame's three columns."""
+    model = problem.model(theta)
+    reference = _zero_load(model)
+
+    def residuals(contact):
+        states = eqx.tree_at(_contact_of, latents, contact)
+        return jax.vmap(problem.frame_residuals, in_axes=(None, 0, 0, None))(model, states, observed, reference)
+
+    contact = _contact_of(latents)
+    zero = tuple(jnp.zeros_like(c) for c in contact)
+    columns = [
+        jax.jvp(
+            residuals,
+            (contact,),
+            (tuple(jnp.ones_like(c) if j == k else z for j, (c, z) in enumerate(zip(contact, zero))),),
+        )[1]
+        for k in range(3)
+    ]
+    # A contact unknown a frame does not see (a column of zeros) gives no direction.
+    q, r = jnp.linalg.qr(jnp.stack(columns, axis=-1))
+    seen = (
+        jnp.abs(jnp.diagonal(r, axis1=-2, axis2=-1)) > 1e-6 * jnp.max(jnp.abs(r), axis=(-2, -1), keepdims=True)[..., 0]
+    )
+    return q * seen[:, None, :].astype(q.dtype)
+
+
 @eqx.filter_jit
 def _latent_solve(problem: _Problem, theta, latents: LoadState, observed, steps: int) -> LoadState:
     """Every frame's contact centre and radius, on the fringe phase; the wrench (the reference
@@ -270,16 +313,13 @@ def _latent_solve(problem: _Problem, theta, latents: LoadState, observed, steps:
     model = problem.model(theta)
     reference = _zero_load(model)
 
-    def contact_of(state: LoadState):
-        return state.x0, state.y0, state.log_radius
-
     def one(state: LoadState, obs):
         def residuals(contact, args):
-            return problem.frame_residuals(model, eqx.tree_at(contact_of, state, contact), obs, reference)
+            return problem.frame_residuals(model, eqx.tree_at(_contact_of, state, contact), obs, reference)
 
         solver = optx.LevenbergMarquardt(rtol=1e-5, atol=1e-6, linear_solver=lx.QR())
-        sol = optx.least_squares(residuals, solver, contact_of(state), max_steps=steps, throw=False)
-        return eqx.tree_at(contact_of, state, sol.value)
+        sol = optx.least_squares(residuals, solver, _contact_of(state), max_steps=steps, throw=False)
+        return eqx.tree_at(_contact_of, state, sol.value)
 
     # One frame after another, not vmapped: a vmapped solve steps every frame until the
     # slowest has converged and holds every frame's intermediates at once, so its memory
