@@ -143,7 +143,8 @@ class TactileProcessor:
         radius = float(contact.radius)
         wrench = np.asarray(estimate.wrench, np.float64)
         covariance = np.asarray(estimate.covariance, np.float64)
-        if self.head is not None and status in _WITH_WRENCH and np.all(np.isfinite(wrench)):
+        # Every finite estimate of a contact, as `invert` corrects its rows.
+        if self.head is not None and status != Status.NO_CONTACT and np.all(np.isfinite(wrench)):
             position = [np.asarray(v, np.float64).reshape(1) for v in (contact.x0, contact.y0, contact.radius)]
             wrench = self.head.correct(wrench[None], *position)[0]
             covariance = self.head.corrected_covariance(covariance)
