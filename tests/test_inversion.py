@@ -12,7 +12,7 @@ import moirejax as mj
 from moirejax._conventions import WRENCH_SCALE
 from moirejax.inverse import invert, Inverter, LoadState, Status
 from moirejax.inverse._estimate import _off_the_surface
-from moirejax.inverse._inversion import _median
+from moirejax.inverse._inversion import _crop_shape_for, _median, BAND_FRACTION
 from moirejax.inverse._solvers import levenberg_marquardt
 from moirejax.physics._contact import Contact
 from moirejax.physics._render import render_frame
@@ -217,6 +217,23 @@ def test_a_camera_that_is_not_square_is_simulated_and_inverted():
     assert int(estimate.status) == Status.CONVERGED
     error = np.abs(np.asarray(estimate.wrench) - wrench) / np.asarray(WRENCH_SCALE)
     assert np.all(error < 0.05), error
+
+
+def test_the_dense_design_is_demodulated_on_a_wider_grid():
+    # The paper's Dense design (0.2 mm pitches, fringes 0.8 mm apart) has moiré bands too
+    # wide in wavenumber for the 32 x 32 windows that suit Mid and Sparse: the inverter
+    # widens its coarse grid until they fit, instead of refusing the design. (At the
+    # paper's 16 px/mm, which the 0.2 mm gratings need, on a 28 mm field: the window a band
+    # needs is a share of the field's wavenumber bins, so a smaller field does with 32.
+    # Inverting its frames needs a model grid fine enough for its fringes, about 300 x 300:
+    # benchmarks/peer_frames.py --design dense measures that.)
+    unit = mj.preset("dense", height=448, width=448)
+    with pytest.raises(ValueError, match="does not fit in crop_shape"):
+        Inverter(unit, crop_shape=(32, 32))
+    inverter = Inverter(unit)
+    assert inverter.demodulator.crop_shape == (40, 40)
+    for name in ("mid", "sparse"):
+        assert _crop_shape_for(mj.preset(name), BAND_FRACTION) == (32, 32)
 
 
 def test_no_recompilation_per_frame(mid, inverter):

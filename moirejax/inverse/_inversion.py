@@ -189,6 +189,36 @@ def default_carriers() -> bool | None:
     return None if override in ("", "1") else False
 
 
+# The coarse demodulation grid of most designs (about 1 mm cells on Mid), and the sizes tried
+# above it for designs whose moiré bands do not fit its windows.
+_CROP_SIZES = (32, 40, 48, 56, 64, 80, 96, 128)
+
+
+def _crop_shape_for(device: Device, band_fraction: float) -> tuple[int, int]:
+    """The smallest square coarse grid of `_CROP_SIZES` whose demodulation windows hold every
+    moiré band of `device` (each band's radius is `band_fraction` of its wavenumber)."""
+    moire = np.asarray(device.moire_wavevectors(), np.float64)
+    for size in _CROP_SIZES:
+        try:
+            Demodulator(
+                (device.height, device.width),
+                float(device.px_per_mm),
+                moire,
+                crop_shape=(size, size),
+                band_fraction=band_fraction,
+            )
+        except ValueError as e:
+            if "crop_shape" not in str(e):  # too small a window: try the next size
+                raise
+            continue
+        return (size, size)
+    raise ValueError(
+        f"the moiré bands of this design (wavevectors {np.round(moire, 2).tolist()} rad/mm) do not fit a "
+        f"{_CROP_SIZES[-1]} x {_CROP_SIZES[-1]} demodulation grid of a {device.height} x {device.width} frame: "
+        "the fringes are too fine for the camera; change p1, p2, a or Z"
+    )
+
+
 class Inverter(eqx.Module):
     """Inverts frames of one unit into wrenches. Build once per unit (and reference).
 
@@ -204,7 +234,9 @@ class Inverter(eqx.Module):
       lie where the reference's do; `None` does it exactly when `match_reference` does. A
       new reference of a unit whose geometry is already matched (a tare) registers
       without matching: the geometry, and with it the compiled solver, stays.
-    - `crop_shape`: coarse demodulation grid.
+    - `crop_shape`: coarse demodulation grid. Default: 32 x 32, or the smallest square grid
+        above it whose windows hold the moiré bands (a design of fine fringes, such as the
+        paper's Dense, needs a wider window: its bands are wider in wavenumber).
     - `model_shape`: grid of the mechanics and the predicted fringe field; `None` for
       [`default_model_shape`][]: [`model_grid_for`][] (8 samples per moiré period and 6
       across a 2.5 mm contact radius: 96 × 96 on the paper's Mid design) unless the
@@ -258,7 +290,7 @@ class Inverter(eqx.Module):
         device: Device,
         reference=None,
         *,
-        crop_shape: tuple[int, int] = (32, 32),
+        crop_shape: tuple[int, int] | None = None,
         model_shape: tuple[int, int] | None = None,
         band_fraction: float = BAND_FRACTION,
         max_steps: int = 40,
@@ -301,6 +333,8 @@ class Inverter(eqx.Module):
         moire = np.asarray(device.moire_wavevectors())
         if carriers is None:
             carriers = default_carriers()
+        if crop_shape is None:
+            crop_shape = _crop_shape_for(device, band_fraction)
         radius = carrier_band_radius(device, crop_shape) if carriers in (None, True) else None
         if carriers and radius is None:
             raise ValueError("this camera does not resolve the upper grating's carriers; use carriers=False")
