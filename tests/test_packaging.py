@@ -121,4 +121,5 @@ print(json.dumps(report | {"example_E": float(unit.elastomer.E), "example_head":
     assert report["schemas"] == sorted(p.name for p in (PACKAGE / "data_schema").glob("*.schema.json"))
     assert "elastomer.E" in report["recipes"]["unit"] and "elastomer.E" in report["recipes"]["transfer"]
     assert report["p1"] == pytest.approx(float(mj.preset("mid").p1))
-    assert 0.8 < report["example_E"] < 0.9 and report["example_head"]
+    # The example unit is softer than its design (E 0.830 MPa); its fit says so, within a tenth.
+    assert abs(report["example_E"] / 0.830 - 1) < 0.1 and report["example_head"]
