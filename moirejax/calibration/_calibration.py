@@ -231,24 +231,26 @@ def _robust_scale(r: jax.Array) -> jax.Array:
 
 @eqx.filter_jit
 def _parameter_solve(
-    problem: _Problem, theta, free: tuple[int, ...], latents: LoadState, observed, prior_mean, prior_weight, steps: int
+    problem: _Problem, theta, free: jax.Array, latents: LoadState, observed, prior_mean, prior_weight, steps: int
 ):
-    """Levenberg–Marquardt over the entries `free` of `theta`, the others held, on the
-    residual each frame keeps once its own contact (centre and radius) has taken up what it
-    can: the frames' residuals projected off the directions their contacts move them in,
-    at the start (`_contact_directions`).
+    """Levenberg–Marquardt over the entries of `theta` where the mask `free` is set, the
+    others held, on the residual each frame keeps once its own contact (centre and radius)
+    has taken up what it can: the frames' residuals projected off the directions their
+    contacts move them in, at the start (`_contact_directions`).
 
     Held fixed instead, the contacts pin the parameters they trade with (a stiffer layer
     reads as a smaller patch under the same reading): alternating between the two then
     moves such a parameter little or not at all, however far the data put it."""
-    index = jnp.asarray(free)
+    # Every stage solves for the whole vector, its held entries masked out of the model and
+    # the prior: their Jacobian columns vanish and the damped steps leave them where they
+    # are. One program then serves every stage, instead of one compiled per stage.
     data = (latents, observed)
-    start = theta[index]
+    start = theta
     directions = jax.lax.stop_gradient(_contact_directions(problem, theta, latents, observed))
 
     def data_residuals(sub, args):
         latents, observed = args
-        model = problem.model(theta.at[index].set(sub))
+        model = problem.model(jnp.where(free, sub, theta))
         per_frame = jax.vmap(problem.frame_residuals, in_axes=(None, 0, 0, None))(
             model, latents, observed, _zero_load(model)
         )
@@ -258,7 +260,7 @@ def _parameter_solve(
     noise = jax.lax.stop_gradient(_robust_scale(data_residuals(start, data)))
 
     def residuals(sub, args):
-        prior = (sub - prior_mean[index]) * prior_weight[index] * noise
+        prior = jnp.where(free, (sub - prior_mean) * prior_weight, 0.0) * noise
         return jnp.concatenate([data_residuals(sub, args), prior])
 
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-7, linear_solver=lx.QR())
@@ -267,9 +269,9 @@ def _parameter_solve(
     full, linear = jax.linearize(lambda sub: residuals(sub, data), sol.value)
     J = jax.vmap(linear, out_axes=1)(jnp.eye(sol.value.size, dtype=sol.value.dtype))
     r = full[: full.size - sol.value.size]
-    dof = (jnp.sum(r != 0) - sol.value.size - 3 * latents.x0.shape[0]).astype(r.dtype)
+    dof = (jnp.sum(r != 0) - jnp.sum(free) - 3 * latents.x0.shape[0]).astype(r.dtype)
     covariance = jnp.linalg.pinv(J.T @ J, hermitian=True) * jnp.sum(r**2) / dof
-    return theta.at[index].set(sol.value), covariance, jnp.sum(r**2)
+    return jnp.where(free, sol.value, theta), covariance, jnp.sum(r**2)
 
 
 def _contact_of(state: LoadState):
@@ -455,14 +457,14 @@ def fit_physical_parameters(
             theta, block, cost = _parameter_solve(
                 phase,
                 theta,
-                free,
+                jnp.asarray(np.isin(np.arange(theta.size), free)),
                 jax.tree_util.tree_map(lambda a, s=subset: a[s], latents),
                 observed_subset,
                 prior_mean,
                 prior_weight,
                 recipe.parameter_steps,
             )
-            covariance[np.ix_(free, free)] = np.asarray(block)
+            covariance[np.ix_(free, free)] = np.asarray(block)[np.ix_(free, free)]
             costs[f"{name}_cost"] = float(cost)
             bar.update()
         latents = solve_latents(latents)
