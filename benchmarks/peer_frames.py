@@ -1,7 +1,7 @@
 """Accuracy on frames moirejax did not render: the independent ray-casting renderer.
 
     python benchmarks/peer_frames.py --data DIR [--json]
-    python benchmarks/peer_frames.py --render 200 --seed 3 [--supersample 12] [--json]
+    python benchmarks/peer_frames.py --render 200 --seed 3 [--supersample 12] [--contacts shaped] [--json]
     python benchmarks/peer_frames.py --data DIR --calibrate 200 [--calibration-seed 11] [--json]
 
 `--data` reads a folder written by the peer renderer (`frames/*.png`, `wrench.csv` with a
@@ -54,11 +54,29 @@ def read_peer(folder: Path):
     return frames, wrench, contact
 
 
-def render_peer(n: int, seed: int, supersample: int | None = None, design: str = "mid") -> Path:
+# Loads the renderer can draw beyond its own mixed ones (`--contacts`), as code run in its
+# process: each takes a load it drew and changes what the inversion's contact model lacks
+# (`shaped`: elliptic patches and pressure tilted across them; moirejax's patch is round) or
+# what the paper's calibration range leaves out (`heavy`: up to 5 N, 0.5 N of shear and
+# 0.02 N·m of twist on wider patches).
+CONTACTS = {
+    "paper": "",
+    "shaped": "c.ellipticity = rng.uniform(-0.35, 0.35); c.tilt = tuple(rng.uniform(-0.4, 0.4, 2))",
+    "heavy": (
+        "c.fz = rng.uniform(1.5, 5.0); c.radius = rng.uniform(3.0, 5.0); "
+        "c.shear = tuple(rng.uniform(-0.5, 0.5, 2)); c.tz = rng.uniform(-0.02, 0.02)"
+    ),
+}
+
+
+def render_peer(
+    n: int, seed: int, supersample: int | None = None, design: str = "mid", contacts: str = "paper"
+) -> Path:
     """`n` mixed loads of the peer renderer in a new folder, for one of the paper's designs
     (its pitches; the renderer's own default is Mid); with `supersample`, its pixels sampled
-    at that many points a side instead of its own 4. Its command line has no option for
-    either, so its device's defaults are replaced before its `main` runs."""
+    at that many points a side instead of its own 4; `contacts` one of `CONTACTS`. Its
+    command line has no option for any of them, so its device's defaults and its load draw
+    are replaced before its `main` runs."""
     folder = Path(tempfile.mkdtemp(prefix="peer-"))
     argv = [str(PEER), str(folder), "--n", str(n), "--seed", str(seed)]
     p_far, p_near = DESIGN_PITCHES[design]
@@ -70,6 +88,12 @@ def render_peer(n: int, seed: int, supersample: int | None = None, design: str =
         f"sys.path.insert(0, {str(PEER.parent)!r})\n"
         "import raycast_sensor as peer\n"
         f"peer.Device = functools.partial(peer.Device, **{overrides!r})\n"
+        "_draw = peer.draw_contact\n"
+        "def _drawn(kind, rng):\n"
+        "    c = _draw(kind, rng)\n"
+        f"    {CONTACTS[contacts] or 'pass'}\n"
+        "    return c\n"
+        "peer.draw_contact = _drawn\n"
         f"sys.argv = {argv!r}\n"
         "peer.main()\n"
     )
@@ -121,6 +145,13 @@ def main():
         default="mid",
         help="with --render and --calibrate: the paper's design the renderer draws (its grating pitches)",
     )
+    parser.add_argument(
+        "--contacts",
+        choices=sorted(CONTACTS),
+        default="paper",
+        help="with --render: the renderer's own mixed loads (paper), elliptic patches with tilted pressure"
+        " (shaped), or loads above the paper's range up to 5 N (heavy)",
+    )
     parser.add_argument("--json", action="store_true")
     parser.add_argument(
         "--per-frame", type=Path, help="also write each frame's truth, estimate, sigma and status (CSV)"
@@ -135,7 +166,7 @@ def main():
     if args.data is None:
         if not args.render or not PEER.exists():
             parser.error(f"give --data DIR, or --render N with the peer renderer at {PEER}")
-        args.data = render_peer(args.render, args.seed, args.supersample, args.design)
+        args.data = render_peer(args.render, args.seed, args.supersample, args.design, args.contacts)
     frames, truth, contact = read_peer(args.data)
     device = mj.preset(args.design, layout="lines", duty1=0.5, duty2=0.5)
     start = time.perf_counter()
@@ -161,6 +192,7 @@ def main():
     report = {
         "data": str(args.data),
         "design": args.design,
+        "contacts": args.contacts if args.render else None,
         "frames": int(len(frames)),
         "loaded": int(loaded.sum()),
         "r2": dict(zip(AXES, np.round(r2, 4).tolist())),
