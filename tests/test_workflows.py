@@ -65,11 +65,24 @@ def test_calibrate_evaluate_transfer(datasets, monkeypatch):
         write_fit_set(*args)
         shutil.copytree(parts, root / "kept.parts")
 
+    # Every stage of the parameter fit runs one program; what a stage holds comes back as it went in.
+    parameter_solve, stages = _calibration._parameter_solve, []
+
+    def recorded(problem, theta, free, *args):
+        out = parameter_solve(problem, theta, free, *args)
+        stages.append((np.asarray(theta), np.asarray(free), np.asarray(out[0])))
+        return out
+
     monkeypatch.setattr(workflows, "_SOLVED_PER_PART", 4)
     with monkeypatch.context() as m:
         m.setattr(workflows, "_write_fit_set", write_and_keep_parts)
+        m.setattr(_calibration, "_parameter_solve", recorded)
         summary = run()
     assert not parts.exists()
+    assert [free.tolist() for _, free, _ in stages] == [[True] + [False] * 5, [False] + [True] * 5]
+    for before, free, after in stages:
+        np.testing.assert_array_equal(after[~free], before[~free])
+        assert np.all(after[free] != before[free])
     (root / "kept.parts").rename(parts)
     solved = sorted(p.name for p in parts.glob("solved-*.npz"))
     assert (parts / "physical.json").is_file() and solved[:2] == ["solved-000000.npz", "solved-000004.npz"]
