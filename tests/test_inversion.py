@@ -14,6 +14,7 @@ from moirejax.inverse import invert, Inverter, LoadState, Status
 from moirejax.inverse._estimate import _off_the_surface
 from moirejax.inverse._inversion import _crop_shape_for, _median, BAND_FRACTION
 from moirejax.inverse._solvers import levenberg_marquardt
+from moirejax.observe import DemodulationWindowTooSmall
 from moirejax.physics._contact import Contact
 from moirejax.physics._render import render_frame
 from moirejax.simulate._simulate import load_schedule
@@ -228,7 +229,7 @@ def test_the_dense_design_is_demodulated_on_a_wider_grid():
     # Inverting its frames needs a model grid fine enough for its fringes, about 300 x 300:
     # benchmarks/peer_frames.py --design dense measures that.)
     unit = mj.preset("dense", height=448, width=448)
-    with pytest.raises(ValueError, match="does not fit in crop_shape"):
+    with pytest.raises(DemodulationWindowTooSmall, match="does not fit in crop_shape"):
         Inverter(unit, crop_shape=(32, 32))
     inverter = Inverter(unit)
     assert inverter.demodulator.crop_shape == (40, 40)

@@ -18,6 +18,7 @@ from ._observables import (
     BasebandPass as BasebandPass,
     brightness_baseline as brightness_baseline,
     BrightnessBaseline as BrightnessBaseline,
+    DemodulationWindowTooSmall as DemodulationWindowTooSmall,
     Demodulator as Demodulator,
     frame_summary as frame_summary,
     FrameSummary as FrameSummary,

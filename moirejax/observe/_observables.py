@@ -355,6 +355,12 @@ class FringeFields(eqx.Module):
     light: Complex[Array, "families m n"] | None = None
 
 
+class DemodulationWindowTooSmall(ValueError):
+    """A band of the frame does not fit the windows of the coarse demodulation grid: a wider
+    `crop_shape` (or a narrower `band_fraction`) holds it. A design of fine fringes has
+    bands wide in wavenumber and needs the wider grid."""
+
+
 class Demodulator(eqx.Module):
     r"""Fourier-transform demodulator for one camera geometry, built once per device.
 
@@ -530,7 +536,7 @@ class Demodulator(eqx.Module):
             # The support must stay clear of the window's border: no aliasing on the coarse
             # grid, and an exactly zero Nyquist row and column for spectral derivatives.
             if window[[0, -1]].any() or window[:, [0, -1]].any():
-                raise ValueError(
+                raise DemodulationWindowTooSmall(
                     f"The band of wavevector {k_f} does not fit in crop_shape {crop_shape}; "
                     "increase crop_shape or decrease band_fraction."
                 )
@@ -545,12 +551,12 @@ class Demodulator(eqx.Module):
         tones = _tone_windows(np, k_nominal, crop_starts, (h, w), (m, n), np.float64(pixel), np.complex128)
         envelope = np.abs(_band_pass(np, tones, transfer, apodize, h, w))
         if envelope.min() < 1e-6 * envelope.max():
-            raise ValueError(f"The fringe envelope vanishes; increase crop_shape {crop_shape}.")
+            raise DemodulationWindowTooSmall(f"The fringe envelope vanishes; increase crop_shape {crop_shape}.")
 
         # The brightness band: the same construction around DC.
         dc_window = _raised_cosine(np, np.hypot(dkx, dky), dc_radius, rolloff)
         if dc_window[[0, -1]].any() or dc_window[:, [0, -1]].any():
-            raise ValueError(f"The brightness band does not fit in crop_shape {crop_shape}.")
+            raise DemodulationWindowTooSmall(f"The brightness band does not fit in crop_shape {crop_shape}.")
         dc_transfer = dc_window * np.exp(1j * (dkx * (coarse0[0] - pixel0[0]) + dky * (coarse0[1] - pixel0[1])))
         dc_transfer = dc_transfer * normalisation
         dc_starts = [(-(m // 2), -(n // 2))]
