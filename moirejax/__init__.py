@@ -3,6 +3,7 @@
 import importlib.metadata
 
 from ._conventions import (
+    centre_of_pressure_mm as centre_of_pressure_mm,
     PAPER_RANGES as PAPER_RANGES,
     WRENCH_AXES as WRENCH_AXES,
     WRENCH_CONVENTION as WRENCH_CONVENTION,
@@ -79,10 +80,16 @@ from .inverse import (
     Inverter as Inverter,
     LoadState as LoadState,
     model_grid_for as model_grid_for,
+    patch_tractions as patch_tractions,
     PixelFit as PixelFit,
+    plot_inversion as plot_inversion,
+    read_traction_maps as read_traction_maps,
     refine_in_pixels as refine_in_pixels,
     Status as Status,
     Track as Track,
+    TRACTION_MAP_SHAPE as TRACTION_MAP_SHAPE,
+    TractionMaps as TractionMaps,
+    write_traction_maps as write_traction_maps,
 )
 from .live import open_sensor as open_sensor, open_sensors as open_sensors
 from .observe import (

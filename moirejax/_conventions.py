@@ -24,3 +24,16 @@ PAPER_RANGES = {"fx": 0.2, "fy": 0.2, "fz": 1.2, "tx": 0.012, "ty": 0.012, "tz":
 reported and the solver's unknowns are normalised."""
 # Scale of each wrench axis in the solver and the residual head: the ranges in WRENCH_AXES order.
 WRENCH_SCALE = np.array([PAPER_RANGES[name] for name in WRENCH_AXES])
+
+
+def centre_of_pressure_mm(wrench: np.ndarray) -> np.ndarray:
+    """The centre of pressure `(x, y)` in mm of wrenches `(..., 6)`: where the normal force
+    would act alone to give the torques about x and y. With the origin on the contact
+    surface, Tx = sum(y p dA) and Ty = -sum(x p dA), so x = -Ty / Fz and y = Tx / Fz (NaN
+    where Fz is not positive: a pull or no load has no centre of pressure)."""
+    wrench = np.asarray(wrench, np.float64)
+    fz = wrench[..., 2]
+    pressing = fz > 0
+    safe = np.where(pressing, fz, 1.0)
+    centre = np.stack([-wrench[..., 4] / safe, wrench[..., 3] / safe], axis=-1) * NMM_PER_NM
+    return np.where(pressing[..., None], centre, np.nan)

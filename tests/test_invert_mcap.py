@@ -4,6 +4,7 @@ file after an interruption) and the `examples/ros2_node.py` node's message of a 
 
 import csv
 import dataclasses
+import functools
 import importlib.util
 import json
 import math
@@ -11,11 +12,13 @@ import sys
 from pathlib import Path
 
 import cv2
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
 
 import moirejax as mj
+import moirejax.calibration
 import moirejax.inverse
 import moirejax.live
 from moirejax._fileio import validate_json
@@ -66,6 +69,7 @@ def inverted(tmp_path_factory, single_precision):
     (root / "seq" / "frames" / f"{CORRUPT:06d}.png").write_bytes(b"not a png")
     argv = ["invert", "--device", str(root / "mid.json"), "--data", str(root / "seq"), "--out"]
     argv += [str(root / "w.csv"), "--mcap", str(root / "bags" / "run.mcap"), "--frame-id", "left_pad", "--quiet"]
+    argv += ["--maps", str(root / "maps.h5"), "--plot", str(root / "plots"), "--plot-frames", "3"]
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("MOIREJAX_CARRIERS", "0")
         code = main(argv)
@@ -123,6 +127,67 @@ def test_frames_and_pressure_maps_of_the_recording(inverted):
     cell_mm = device.width / msg.width / float(device.px_per_mm) * float((device.Z + device.a) / device.Z)
     p = np.frombuffer(msg.data, "<f4").reshape(msg.height, msg.width)
     assert p.sum() * (cell_mm * 1e-3) ** 2 == pytest.approx(float(rows[loaded[0]]["fz"]), rel=0.02)
+
+
+def test_traction_maps_of_the_recording_carry_its_wrenches(inverted):
+    rows, root = inverted["rows"], inverted["root"]
+    maps = mj.read_traction_maps(root / "maps.h5")
+    assert maps.frame == [row["frame"] for row in rows] and maps.status == [row["status"] for row in rows]
+    assert maps.traction.shape == (len(rows), 3, *mj.TRACTION_MAP_SHAPE) and maps.traction.dtype == np.float32
+    X, Y = np.meshgrid(maps.x_mm, maps.y_mm)
+    cell_m2 = ((maps.x_mm[1] - maps.x_mm[0]) * 1e-3) ** 2
+    loaded = [i for i, row in enumerate(rows) if row["status"] in ("converged", "max_steps")]
+    assert loaded
+    for i in loaded:
+        tx, ty, p = maps.traction[i].astype(np.float64) * cell_m2
+        # The map's resultant and moments about the origin on the surface are the CSV's wrench.
+        moments = [tx.sum(), ty.sum(), p.sum(), (Y * p).sum() * 1e-3, -(X * p).sum() * 1e-3]
+        moments.append((X * ty - Y * tx).sum() * 1e-3)
+        wrench = [float(rows[i][axis]) for axis in mj.WRENCH_AXES]
+        ranges = np.array([mj.PAPER_RANGES[a] for a in mj.WRENCH_AXES])
+        assert np.all(np.abs(np.subtract(moments, wrench)) <= 1e-4 * np.abs(wrench) + 1e-5 * ranges), (moments, wrench)
+        assert p.min() >= 0
+        # The centre of pressure is the pressure's centroid.
+        centroid = [(X * p).sum() / p.sum(), (Y * p).sum() / p.sum()]
+        np.testing.assert_allclose(maps.centre_of_pressure_mm[i], centroid, atol=1e-3)
+        assert maps.contact_area_mm2[i] == pytest.approx(math.pi * float(rows[i]["radius"]) ** 2)
+    quiet = [i for i, row in enumerate(rows) if row["status"] == "no_contact"]
+    assert quiet and all(np.all(maps.traction[i] == 0) for i in quiet)
+    assert np.all(np.isnan(maps.traction[CORRUPT])) and maps.contacts[CORRUPT] == 0
+    # One frame read alone, from its own chunk.
+    one = mj.read_traction_maps(root / "maps.h5", frames=slice(loaded[0], loaded[0] + 1))
+    np.testing.assert_array_equal(one.traction[0], maps.traction[loaded[0]])
+
+    chosen = mj.inverse.frames_worth_a_look(rows, 3)
+    assert len(chosen) == 3
+    drawn = sorted(p.name for p in (root / "plots").iterdir())
+    assert drawn == sorted(["timeline.png", *(f"frame-{Path(rows[i]['frame']).stem}.png" for i in chosen)])
+    assert all(cv2.imread(str(root / "plots" / name)) is not None for name in drawn)
+
+
+def test_the_misfit_map_shows_what_a_reading_leaves_of_the_fringes(inverted):
+    rows, root = inverted["rows"], inverted["root"]
+    dataset = mj.open_dataset(root / "seq")
+    device = mj.preset("mid", **SMALL)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("MOIREJAX_CARRIERS", "0")
+        inverter = mj.Inverter(device, reference=moirejax.calibration.dataset_reference(dataset))
+    i = max((k for k, row in enumerate(rows) if row["status"] == "converged"), key=lambda k: float(rows[k]["fz"]))
+    frame = dataset.frames([i])[0]
+    wrenches, contacts = moirejax.inverse.stack_patches(moirejax.inverse.row_patches(rows[i], "w.csv", i + 2), "f4")
+    misfit = functools.partial(eqx.filter_jit(mj.Inverter.misfit_map), inverter)
+    change, left = np.asarray(misfit(frame, wrenches, contacts))
+    inner = np.asarray(inverter._quiet_mask())
+    # The fringes moved far beyond their noise, and the reading explains almost all of it.
+    assert change[inner].mean() > 100 and left[inner].sum() < 0.01 * change[inner].sum()
+    # Without a load nothing is explained; with half the normal force much is left.
+    change0, left0 = np.asarray(misfit(frame, np.zeros_like(wrenches), contacts))
+    np.testing.assert_allclose(left0, change0, rtol=1e-3)
+    np.testing.assert_array_equal(change0, change)
+    half = wrenches.copy()
+    half[:, 2] *= 0.5
+    _, left_half = np.asarray(misfit(frame, half, contacts))
+    assert left_half[inner].sum() > 20 * left[inner].sum()
 
 
 def test_stamps_are_the_datasets_capture_times(inverted, capsys):

@@ -318,11 +318,21 @@ def _cmd_invert(args: argparse.Namespace) -> int:
             raise ValueError("--engine dask needs Dask: pip install 'moirejax[cluster]'") from None
     if args.fps is not None and not args.mcap:
         raise ValueError("--fps sets the stamps of --mcap: give the MCAP file with --mcap")
+    if args.plot_frames is not None and not args.plot:
+        raise ValueError("--plot-frames sets how many frames --plot draws: give the folder with --plot")
     device, head = load_calibrated(args.device)
     check_source(args.data)
     check_output_file(args.out, argument="out")
-    if args.mcap and os.path.abspath(args.mcap) == os.path.abspath(args.out):
-        raise ValueError("--mcap and --out name the same file")
+    outputs = {"--out": args.out, "--mcap": args.mcap, "--maps": args.maps, "--plot": args.plot}
+    named = [(flag, os.path.abspath(path)) for flag, path in outputs.items() if path]
+    for k, (flag, path) in enumerate(named):
+        for other, other_path in named[k + 1 :]:
+            if path == other_path:
+                raise ValueError(f"{flag} and {other} name the same path")
+    if args.maps:
+        check_output_file(args.maps, argument="maps")
+    if args.plot:
+        check_output_folder(args.plot, argument="plot")
     mcap = _open_mcap(args.mcap, wrench_statuses=WRENCH_STATUSES) if args.mcap else None
     try:
         reference, note = _reference_for(device, args.data, args.reference)
@@ -351,6 +361,8 @@ def _cmd_invert(args: argparse.Namespace) -> int:
                 progress=not args.quiet,
                 head=head,
             )
+        if args.maps or args.plot:
+            _write_invert_views(args, inverter)
         stamps = None
         if mcap is not None:
             records = RecordStream(sensor_id=args.sensor_id, frame_id=args.frame_id)
@@ -363,12 +375,36 @@ def _cmd_invert(args: argparse.Namespace) -> int:
             mcap.abort()  # no half MCAP file, at its name or beside it
         raise
     print(f"wrote {args.out}: " + ", ".join(f"{n} {status}" for status, n in sorted(counts.items())))
+    if args.maps:
+        print(f"wrote {args.maps}: the traction maps of every frame")
+    if args.plot:
+        print(f"wrote {args.plot}: the wrench's timeline and the frames worth a look")
     if mcap is not None:
         print(
             f"wrote {args.mcap}: {mcap.stats['sent']} records, {mcap.stats['images']} frames, "
             f"{mcap.stats['pressure_maps']} pressure maps; stamps: {stamps}"
         )
     return 0
+
+
+def _write_invert_views(args: argparse.Namespace, inverter) -> None:
+    """The traction maps (`--maps`) and plots (`--plot`) of an inverted recording, drawn
+    from its CSV and moved into place as a set: both or neither."""
+    from .._fileio import commit_staged, staging_folder
+    from ..inverse import plot_inversion, write_traction_maps
+
+    beside = args.maps or args.plot
+    with staging_folder(beside) as staging:
+        moves = []
+        if args.maps:
+            staged = staging / "maps.h5"
+            write_traction_maps(staged, inverter.device, args.out)
+            moves.append((staged, Path(args.maps)))
+        if args.plot:
+            staged = staging / "plots"
+            plot_inversion(staged, inverter, args.data, args.out, frames=args.plot_frames or 6)
+            moves.append((staged, Path(args.plot)))
+        commit_staged(staging, moves)
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
@@ -1025,6 +1061,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--sensor-id", default="moirejax", help="the --mcap records' sensor name")
     p.add_argument("--frame-id", default="moirejax_sensor", help="ROS frame name of the --mcap wrenches")
+    p.add_argument(
+        "--maps",
+        metavar="OUT.h5",
+        help="also write the traction maps (shear x, y and pressure, Pa) of every frame to one HDF5 file, a frame "
+        "to a chunk, with the centre of pressure and contact area",
+    )
+    p.add_argument(
+        "--plot",
+        metavar="DIR",
+        help="also draw the wrench's timeline and, for the frames worth a look, pressure, shear and where the "
+        "reading leaves the fringes unexplained",
+    )
+    p.add_argument("--plot-frames", type=_positive_int, metavar="N", help="frames --plot draws (default 6)")
     p.set_defaults(run=_cmd_invert)
 
     p = sub.add_parser("calibrate", help="fit a unit's physical parameters and residual head to a dataset")

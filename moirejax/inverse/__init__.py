@@ -1,7 +1,7 @@
 """Wrench inversion: the unknowns of a frame and what an inversion returns, the band
 inversion of a frame (`Inverter`), its two entry points (`invert` for sets and recordings,
 `frame_tracker` for camera streams), the whole-frame pixel refinement, and inverting
-recordings into a wrench CSV.
+recordings into a wrench CSV, their traction maps and plots.
 
 It imports `observe` and the layers below.
 """
@@ -21,5 +21,19 @@ from ._invert_io import (
     invert_recording as invert_recording,
     load_reference_image as load_reference_image,
 )
+from ._maps import (
+    map_grid as map_grid,
+    patch_tractions as patch_tractions,
+    patches_area_mm2 as patches_area_mm2,
+    read_traction_maps as read_traction_maps,
+    read_wrench_csv as read_wrench_csv,
+    row_number as row_number,
+    row_patches as row_patches,
+    stack_patches as stack_patches,
+    TRACTION_MAP_SHAPE as TRACTION_MAP_SHAPE,
+    TractionMaps as TractionMaps,
+    write_traction_maps as write_traction_maps,
+)
 from ._pixel_fit import PixelFit as PixelFit, refine_in_pixels as refine_in_pixels
+from ._plots import frames_worth_a_look as frames_worth_a_look, plot_inversion as plot_inversion
 from ._state import Estimate as Estimate, LoadState as LoadState, Status as Status, Track as Track

@@ -677,6 +677,30 @@ class Inverter(eqx.Module):
         screen, observed, _, _ = self._prepare(frame)
         return self._phase_change_statistic(observed, screen)
 
+    def misfit_map(
+        self, frame: Real[Array, "h w"], wrenches: Float[Array, "patches 6"], contacts: Contact
+    ) -> Float[Array, "2 m n"]:
+        """Where a reading of `frame` explains its fringes and where it does not.
+
+        At every point of the coarse grid (`demodulator.coarse_grid()`, mm on the contact
+        surface): the fringe phase's change from the reference (row 0), and what is left of
+        it once the patches of `contacts` (fields with a leading axis) carrying `wrenches`
+        (N, N·m, about the origin) are modelled (row 1), each in units of what the frame's
+        and the reference's pixel noise alone put there (about 1 where nothing is left), the
+        mean over the band families. The residual is the one the estimate is refined on (the
+        fringe phase, with the contact light each family explains best), so a frame read
+        `unexplained` shows here where its model falls short. Pure and jit-able."""
+        screen, observed, _, _ = self._prepare(frame)
+        fit = eqx.tree_at(lambda i: (i.fitted_flatness, i.fitted_elongation), self._fit, (True, True))
+        predicted = fit.model.of_contacts(jnp.asarray(wrenches, observed.brightness.dtype), contacts)
+        size = self.fringe_weight.size
+        floor = self._phase_noise_floor(screen)
+
+        def energy(residual):
+            return jnp.mean(residual[size : 2 * size].reshape(self.fringe_weight.shape) ** 2 / floor, axis=0)
+
+        return jnp.stack([energy(fit._zero_residuals(observed)), energy(fit.band_residual(observed, predicted))])
+
     def initial_guess(self, observed: FringeFields) -> LoadState:
         """A cold start from the brightness excess: its centroid places the contact, its
         integral sets Fz through the model's glow per newton, and a centred pressure gives

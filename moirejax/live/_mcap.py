@@ -28,7 +28,6 @@ can salvage. A run that fails or is interrupted deletes it with
 [`abort`][McapSink.abort].
 """
 
-import csv
 import math
 import os
 import threading
@@ -39,14 +38,21 @@ from typing import Any
 
 import cv2
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._conventions import PA_PER_MPA, WRENCH_AXES, WRENCH_CONVENTION
-from .._fileio import DataError
 from ..data import Dataset
-from ..inverse import check_source
-from ..physics import Contact, Device, surface_grid, surface_tractions
+from ..inverse import (
+    check_source,
+    map_grid,
+    patch_tractions,
+    patches_area_mm2,
+    read_wrench_csv,
+    row_number,
+    row_patches,
+    stack_patches,
+)
+from ..physics import Device
 from ._records import LOAD_STATUSES, RecordStream
 from ._run import PRESSURE_SHAPE
 from ._sinks import _CountingSink, make_record, Sink, WrenchRecord
@@ -391,54 +397,6 @@ class McapSink(_CountingSink):
 
 # --------------------------------------------------------------------------- inverted recordings
 
-# Statuses whose wrench is an estimate of a load: they get a pressure map and a contact area.
-_LOAD_STATUSES = frozenset({"converged", "max_steps"})
-# Columns of the wrench CSV of `invert_recording` that a record is made from.
-_CSV_COLUMNS = ("frame", *WRENCH_AXES, "x0", "y0", "radius", "status", "message")
-
-
-def _read_inversion(path: Path) -> list[dict[str, str]]:
-    try:
-        with open(path, newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            missing = [c for c in _CSV_COLUMNS if c not in (reader.fieldnames or ())]
-            if missing:
-                raise DataError(f"{path}: no column {', '.join(missing)}; not a wrench CSV of `moirejax invert`")
-            return list(reader)
-    except UnicodeDecodeError as e:
-        raise DataError(f"{path}: not a text CSV ({e.reason})") from None
-
-
-def _patches(row: dict[str, str], wrench: np.ndarray, path: Path, line: int) -> list[tuple[np.ndarray, Contact]]:
-    """The contact patches of a row, each `(wrench, contact)`: one, or two when the row was
-    read with two and carries the second patch's share of the wrench (files written before
-    that share was a column draw their two contacts as one; files written before the
-    flatness or the elongation was a column have round patches with a sphere's pressure)."""
-    first = _patch(row, "", path, line)
-    columns = [f"second_{axis}" for axis in WRENCH_AXES]
-    if row.get("contacts") != "2" or any(row.get(c) in (None, "", "nan") for c in columns):
-        return [(wrench, first)]
-    second_wrench = np.array([_number(row, c, path, line) for c in columns])
-    return [(wrench - second_wrench, first), (second_wrench, _patch(row, "second_", path, line))]
-
-
-def _patch(row: dict[str, str], prefix: str, path: Path, line: int) -> Contact:
-    centre = [_number(row, f"{prefix}{c}", path, line) for c in ("x0", "y0", "radius")]
-    # Files written before the flatness or the elongation was a column: a round patch with
-    # a sphere's pressure.
-    flatness, aspect, angle = (
-        _number(row, f"{prefix}{c}", path, line) if row.get(f"{prefix}{c}") not in (None, "", "nan") else default
-        for c, default in (("flatness", 0.0), ("aspect_ratio", 1.0), ("long_axis_angle", 0.0))
-    )
-    return Contact.elongated(*centre, aspect, angle, flatness)
-
-
-def _number(row: dict[str, str], column: str, path: Path, line: int) -> float:
-    try:
-        return float(row[column])
-    except (TypeError, ValueError):
-        raise DataError(f"{path} row {line}: field {column!r}: {row[column]!r} is not a number") from None
-
 
 def _frame_stamps(kind: str, source: Path, names: list[str], fps: Real | None) -> tuple[np.ndarray, str]:
     """Each row's stamp (s) and a line saying where the stamps come from."""
@@ -537,7 +495,7 @@ def record_inversion(
         raise ValueError(f"fps must be positive, got {fps}")
     path, csv_path = Path(source), Path(wrench_csv)
     kind = check_source(path)
-    rows = _read_inversion(csv_path)
+    rows = read_wrench_csv(csv_path)
     names = [row["frame"] for row in rows]
     stamps, stamps_from = _frame_stamps(kind, path, names, fps)
     records = records if records is not None else RecordStream()
@@ -548,15 +506,15 @@ def record_inversion(
     shape = (device.height, device.width)
     pressure_of = None
     if pressure_shape is not None and shape[0] * pressure_shape[1] == shape[1] * pressure_shape[0]:
-        grid = surface_grid(pressure_shape, device.px_per_mm, shape, device.a, device.Z)
-        pressure_of = jax.jit(lambda wrench, contact: surface_tractions(wrench, contact, grid)[2] * PA_PER_MPA)
+        grid = map_grid(device, pressure_shape)
+        pressure_of = jax.jit(lambda wrenches, contacts: patch_tractions(wrenches, contacts, grid)[2] * PA_PER_MPA)
     dtype = device.p1.dtype
     for i, (row, image) in enumerate(zip(rows, _frame_images(kind, path, names))):
         line = i + 2  # the header is line 1
-        wrench = np.array([_number(row, axis, csv_path, line) for axis in WRENCH_AXES])
+        wrench = np.array([row_number(row, axis, csv_path, line) for axis in WRENCH_AXES])
         status = row["status"]
-        has_load = status in _LOAD_STATUSES and bool(np.all(np.isfinite(wrench)))
-        patches = _patches(row, wrench, csv_path, line) if has_load else []
+        has_load = status in LOAD_STATUSES and bool(np.all(np.isfinite(wrench)))
+        patches = row_patches(row, csv_path, line) if has_load else []
         record = make_record(
             stamp=stamps[i],
             frame=i,
@@ -565,18 +523,12 @@ def record_inversion(
             wrench=None if np.all(np.isnan(wrench)) else wrench,
             latency_ms=math.nan,  # offline: no capture-to-output time
             message=row["message"],
-            contact_area_mm2=sum(math.pi * float(c.radius) ** 2 for _, c in patches) if has_load else None,
+            contact_area_mm2=patches_area_mm2(patches) if has_load else None,
         )
         record = records.finish(record)
         sink.emit(record)
         if image is not None and hasattr(sink, "emit_image"):
             sink.emit_image(image, record)
         if pressure_of is not None and has_load and hasattr(sink, "emit_pressure"):
-            pressure = sum(
-                np.asarray(
-                    pressure_of(jnp.asarray(w, dtype), jax.tree_util.tree_map(lambda v: v.astype(dtype), c)), np.float32
-                )
-                for w, c in patches
-            )
-            sink.emit_pressure(pressure, record)
+            sink.emit_pressure(np.asarray(pressure_of(*stack_patches(patches, dtype)), np.float32), record)
     return stamps_from

@@ -15,7 +15,7 @@ import threading
 
 import numpy as np
 
-from .._conventions import NMM_PER_NM, WRENCH_SCALE
+from .._conventions import centre_of_pressure_mm, WRENCH_SCALE
 from ._sinks import WrenchRecord
 from ._types import Real
 
@@ -157,5 +157,5 @@ class RecordStream:
         sigma = np.sqrt(cov[2, 2]) if cov is not None and np.isfinite(cov[2, 2]) else 0.0
         if not fz > max(self.cop_sigmas * sigma, 0.01 * self.ranges[2]):
             return None
-        # Tx = sum(y p dA) and Ty = -sum(x p dA) about the origin on the contact surface.
-        return (float(-wrench[4] / fz * NMM_PER_NM), float(wrench[3] / fz * NMM_PER_NM))
+        x, y = centre_of_pressure_mm(wrench)
+        return (float(x), float(y))
