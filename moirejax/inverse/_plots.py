@@ -55,7 +55,9 @@ def plot_inversion(
     of it ([`Inverter.misfit_map`][]), in units of the pixel noise. Returns the files.
 
     `inverter` is the one the recording was inverted with, `source` the recording and
-    `wrench_csv` the CSV `moirejax invert` wrote for it."""
+    `wrench_csv` the CSV `moirejax invert` wrote for it. The maps are those of the CSV's
+    wrench: for a unit whose calibration has a residual head, the corrected one, so what the
+    misfit map shows left includes the head's correction."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rows = read_wrench_csv(wrench_csv)

@@ -29,7 +29,7 @@ import numpy as np
 from .._conventions import PA_PER_MPA
 from .._fileio import DataError
 from ..calibration import ResidualHead
-from ..inverse import frame_tracker, Inverter, Status
+from ..inverse import frame_tracker, Inverter, Status, TRACTION_MAP_SHAPE
 from ..physics import Contact, Device, surface_grid, surface_tractions
 from ..simulate import load_schedule, LoadSchedule, scene_reflectance, SceneObject, Simulator
 from ._camera import (
@@ -64,8 +64,8 @@ logger = logging.getLogger("moirejax.live")
 LoadScript = Callable[[int], tuple[Any, Contact] | None]
 TactileOutput = tuple[np.ndarray, np.ndarray | None, str, str, dict[str, Any]]
 
-# The grid of the pressure map drawn for sinks that take one (rows, columns over the field).
-PRESSURE_SHAPE = (64, 64)
+# The grid of the pressure map drawn for sinks that take one: the traction maps' own.
+PRESSURE_SHAPE = TRACTION_MAP_SHAPE
 
 
 class TactileProcessor:
