@@ -397,7 +397,7 @@ def _write_invert_views(args: argparse.Namespace, inverter) -> None:
     with staging_folder(beside) as staging:
         moves = []
         if args.maps:
-            staged = staging / "maps.h5"
+            staged = staging / Path(args.maps).name  # an error names the file the user gave
             write_traction_maps(staged, inverter.device, args.out)
             moves.append((staged, Path(args.maps)))
         if args.plot:

@@ -234,7 +234,7 @@ def _write_h5(path: Path, rows, patches, wrench, grid: SurfaceGrid, draw, dtype,
 
 def read_traction_maps(path: str | os.PathLike, frames: slice | np.ndarray | None = None) -> TractionMaps:
     """A traction-map file of [`write_traction_maps`][], its maps of `frames` only when
-    given (a slice or indices: the other frames' chunks are not read).
+    given (a slice, or increasing indices: the other frames' chunks are not read).
 
     **Raises:** [`DataError`][moirejax.DataError] naming the file when it is not one."""
     import h5py
